@@ -1,0 +1,404 @@
+"""Loading and validating session folders (``organlab.session/1``).
+
+The format is specified in ``shared/specs/session-format.md``.  A session is
+checked when it is loaded, so that a bad one fails at once with a single
+clear message (:class:`~organlab.errors.SessionError`) naming the file and
+the key, instead of half-way through a reconstruction.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera
+from .errors import SessionError
+
+__all__ = [
+    "FORMAT",
+    "Pattern",
+    "View",
+    "Session",
+    "load_session",
+    "read_image",
+    "write_json",
+]
+
+FORMAT = "organlab.session/1"
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """Calibration board: ``inner_corners`` ``(columns, rows)``, ``square_size`` in mm."""
+
+    inner_corners: tuple
+    square_size: float
+    type: str = "checkerboard"
+
+
+@dataclass(frozen=True)
+class View:
+    """One turntable stop.
+
+    Attributes
+    ----------
+    image : Path
+        Absolute path of the view's image.
+    angle_deg : float
+        Table angle, right-handed about +Z.
+    pose : tuple of ((3, 3) float64, (3,) float64) or None
+        Given world-to-camera ``(R, t)``, mm.
+    mask : Path or None
+        Given silhouette image (non-zero = specimen).
+    """
+
+    image: Path
+    angle_deg: float
+    pose: tuple | None = None
+    mask: Path | None = None
+
+
+@dataclass(frozen=True)
+class Session:
+    """A validated session folder.  Paths are absolute."""
+
+    root: Path
+    name: str
+    image_size: tuple
+    roi_min: np.ndarray
+    roi_max: np.ndarray
+    views: tuple
+    pattern: Pattern | None = None
+    intrinsic_images: tuple = ()
+    turntable_images: tuple = ()  # of (Path, angle_deg)
+    background_images: tuple = ()
+    camera: dict | None = None  # {"K": (3,3), "dist": (5,)}
+    reference: dict = field(default_factory=dict)
+    calibration: dict | None = None  # contents of calibration.json when present
+    raw: dict = field(default_factory=dict)
+
+    @property
+    def json_path(self):
+        return self.root / "session.json"
+
+    @property
+    def calibration_path(self):
+        return self.root / "calibration.json"
+
+    def relpath(self, path):
+        """Path relative to the session folder, with ``/``, for messages and reports."""
+        try:
+            return Path(path).relative_to(self.root).as_posix()
+        except ValueError:
+            return str(path)
+
+    def read(self, path, *, key="image", grey=False):
+        """Read one of the session's images, checking it exists and has the session's size."""
+        return read_image(path, size=self.image_size, key=key, grey=grey, session=self)
+
+    def given_camera(self):
+        """The intrinsics given in ``session.json`` as a :class:`Camera`, or None."""
+        if self.camera is None:
+            return None
+        return Camera(self.camera["K"], self.camera["dist"], image_size=self.image_size)
+
+    def calibrated_camera(self):
+        """Intrinsics from ``calibration.json`` as a :class:`Camera`, or None."""
+        if not self.calibration or "camera" not in self.calibration:
+            return None
+        c = self.calibration["camera"]
+        return Camera(c["K"], c["dist"], image_size=self.image_size)
+
+
+def _fail(session_json, key, message):
+    raise SessionError(f"{session_json}: {key}: {message}")
+
+
+def _matrix(value, shape, where, key):
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        _fail(where, key, f"must be a numeric array of shape {shape}")
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        _fail(where, key, f"must be a finite numeric array of shape {shape}, got {list(a.shape)}")
+    return a
+
+
+def read_image(path, *, size=None, key="image", grey=False, session=None):
+    """Read an 8-bit PNG or JPEG image, with a clear error when it cannot be used.
+
+    Parameters
+    ----------
+    path : str or Path
+    size : (2,) int, optional
+        Expected ``(width, height)``.
+    key : str
+        The session key that names this image (for the message).
+    grey : bool
+        Return a grey ``(H, W)`` image instead of the stored channels.
+
+    Returns
+    -------
+    image : (H, W) or (H, W, 3) uint8
+        Colour images are RGB.
+    """
+    import cv2
+
+    path = Path(path)
+    where = session.json_path if session is not None else path
+    shown = session.relpath(path) if session is not None else str(path)
+    if not path.is_file():
+        _fail(where, key, f"image '{shown}' does not exist; check the path (relative to the session folder)")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        _fail(where, key, f"image '{shown}' cannot be read (corrupt or not PNG/JPEG); re-export or recapture it")
+    if img.dtype != np.uint8:
+        img = (img / 257).astype(np.uint8) if img.dtype == np.uint16 else img.astype(np.uint8)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[:, :, :3]
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if grey else cv2.COLOR_BGR2RGB)
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        _fail(
+            where,
+            key,
+            f"image '{shown}' is {img.shape[1]}x{img.shape[0]} px but image_size is "
+            f"{size[0]}x{size[1]}; every image of a session must have the same size",
+        )
+    return img
+
+
+def _image_list(raw, key, root, where):
+    items = raw
+    if not isinstance(items, list) or not all(isinstance(s, str) for s in items):
+        _fail(where, key, "must be a list of image paths (strings)")
+    return tuple(root / s for s in items)
+
+
+def load_session(path, *, check_images=True):
+    """Load and validate a session folder.
+
+    Parameters
+    ----------
+    path : str or Path
+        The session folder (or its ``session.json``).
+    check_images : bool
+        Also open every image the session names and check its size.
+
+    Returns
+    -------
+    Session
+
+    Raises
+    ------
+    SessionError
+        With one line naming the file and key at fault.
+    """
+    root = Path(path)
+    if root.name == "session.json":
+        root = root.parent
+    root = root.resolve()
+    sj = root / "session.json"
+    if not root.is_dir():
+        raise SessionError(f"{root}: session folder does not exist")
+    if not sj.is_file():
+        raise SessionError(f"{sj}: no session.json in this folder; is it a session folder?")
+    try:
+        raw = json.loads(sj.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise SessionError(f"{sj}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    except UnicodeDecodeError:
+        raise SessionError(f"{sj}: not a UTF-8 text file") from None
+    if not isinstance(raw, dict):
+        _fail(sj, "(top level)", "must be a JSON object")
+
+    if raw.get("format") != FORMAT:
+        _fail(sj, "format", f"must be exactly '{FORMAT}', got {raw.get('format')!r}")
+    if raw.get("units") != "mm":
+        _fail(sj, "units", f"must be 'mm', got {raw.get('units')!r}")
+    size = raw.get("image_size")
+    if (
+        not isinstance(size, list)
+        or len(size) != 2
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
+    ):
+        _fail(sj, "image_size", f"must be [width, height] in pixels (positive integers), got {size!r}")
+    size = tuple(size)
+
+    # --- roi
+    roi = raw.get("roi")
+    if not isinstance(roi, dict) or "min" not in roi or "max" not in roi:
+        _fail(sj, "roi", "must be {'min': [x, y, z], 'max': [x, y, z]} in mm")
+    roi_min = _matrix(roi["min"], (3,), sj, "roi.min")
+    roi_max = _matrix(roi["max"], (3,), sj, "roi.max")
+    bad = [("xyz"[i]) for i in range(3) if roi_min[i] >= roi_max[i]]
+    if bad:
+        _fail(sj, "roi", f"min must be < max on every axis; not on {', '.join(bad)} ({roi_min.tolist()} vs {roi_max.tolist()})")
+
+    # --- pattern
+    pattern = None
+    if raw.get("pattern") is not None:
+        p = raw["pattern"]
+        if not isinstance(p, dict):
+            _fail(sj, "pattern", "must be an object")
+        if p.get("type", "checkerboard") != "checkerboard":
+            _fail(sj, "pattern.type", f"only 'checkerboard' is supported, got {p.get('type')!r}")
+        ic = p.get("inner_corners")
+        if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) and v >= 2 for v in ic)):
+            _fail(sj, "pattern.inner_corners", f"must be [columns, rows] of inner corners (integers >= 2), got {ic!r}")
+        sq = p.get("square_size")
+        if not (isinstance(sq, (int, float)) and not isinstance(sq, bool) and sq > 0):
+            _fail(sj, "pattern.square_size", f"must be a positive number of mm, got {sq!r}")
+        pattern = Pattern(tuple(ic), float(sq))
+
+    # --- calibration image lists
+    cal = raw.get("calibration") or {}
+    if not isinstance(cal, dict):
+        _fail(sj, "calibration", "must be an object")
+    intrinsic = _image_list(cal.get("intrinsic_images", []), "calibration.intrinsic_images", root, sj)
+    tt_raw = cal.get("turntable_images", [])
+    if not isinstance(tt_raw, list):
+        _fail(sj, "calibration.turntable_images", "must be a list of {'image': ..., 'angle_deg': ...}")
+    turntable = []
+    for i, item in enumerate(tt_raw):
+        key = f"calibration.turntable_images[{i}]"
+        if not isinstance(item, dict) or not isinstance(item.get("image"), str):
+            _fail(sj, key, "must be {'image': path, 'angle_deg': number}")
+        a = item.get("angle_deg")
+        if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a):
+            _fail(sj, key + ".angle_deg", "is missing or not a number; give the table angle of every turntable image")
+        turntable.append((root / item["image"], float(a)))
+    background = _image_list(raw.get("background_images", []), "background_images", root, sj)
+
+    # --- camera
+    camera = None
+    if raw.get("camera") is not None:
+        c = raw["camera"]
+        if not isinstance(c, dict):
+            _fail(sj, "camera", "must be {'K': 3x3, 'dist': [k1, k2, p1, p2, k3]}")
+        K = _matrix(c.get("K"), (3, 3), sj, "camera.K")
+        dist = _matrix(c.get("dist", [0, 0, 0, 0, 0]), (5,), sj, "camera.dist")
+        try:
+            Camera(K, dist, image_size=size)
+        except ValueError as e:
+            _fail(sj, "camera", str(e))
+        camera = {"K": K, "dist": dist}
+
+    # --- calibration.json
+    calibration = None
+    cj = root / "calibration.json"
+    if cj.is_file():
+        try:
+            calibration = json.loads(cj.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise SessionError(f"{cj}: invalid JSON ({e}); delete it and run 'organlab calibrate' again") from None
+        if not isinstance(calibration, dict) or "camera" not in calibration:
+            raise SessionError(f"{cj}: has no 'camera'; delete it and run 'organlab calibrate' again")
+        for k in ("K", "dist"):
+            if k not in calibration["camera"]:
+                raise SessionError(f"{cj}: camera.{k} is missing; delete it and run 'organlab calibrate' again")
+
+    # --- views
+    views_raw = raw.get("views")
+    if not isinstance(views_raw, list):
+        _fail(sj, "views", "is required: a list of {'image': path, 'angle_deg': number} (may be empty)")
+    views = []
+    for i, v in enumerate(views_raw):
+        key = f"views[{i}]"
+        if not isinstance(v, dict) or not isinstance(v.get("image"), str):
+            _fail(sj, key, "must be {'image': path, 'angle_deg': number, ...}")
+        a = v.get("angle_deg")
+        if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a):
+            _fail(sj, key + ".angle_deg", "is missing or not a number")
+        pose = None
+        if v.get("pose") is not None:
+            p = v["pose"]
+            if not isinstance(p, dict):
+                _fail(sj, key + ".pose", "must be {'R': 3x3, 't': [3]}")
+            R = _matrix(p.get("R"), (3, 3), sj, key + ".pose.R")
+            t = _matrix(p.get("t"), (3,), sj, key + ".pose.t")
+            if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+                _fail(sj, key + ".pose.R", "is not a rotation matrix")
+            pose = (R, t)
+        mask = None
+        if v.get("mask") is not None:
+            if not isinstance(v["mask"], str):
+                _fail(sj, key + ".mask", "must be an image path")
+            mask = root / v["mask"]
+        views.append(View(root / v["image"], float(a), pose, mask))
+
+    # --- what each view needs
+    have_intrinsics = camera is not None or bool(intrinsic) or calibration is not None
+    have_turntable = bool(turntable) or bool(calibration and calibration.get("turntable"))
+    if views and not have_intrinsics:
+        _fail(sj, "camera", "no intrinsics: give 'camera', or 'calibration.intrinsic_images' to calibrate from")
+    for i, v in enumerate(views):
+        if v.pose is None and not have_turntable:
+            _fail(
+                sj,
+                f"views[{i}].pose",
+                "this view has no pose and the session has no turntable calibration; "
+                "give 'pose' or 'calibration.turntable_images'",
+            )
+    if (intrinsic or turntable) and pattern is None and calibration is None:
+        if camera is None or any(v.pose is None for v in views):
+            _fail(sj, "pattern", "is required to calibrate from board images: {'inner_corners': [cols, rows], 'square_size': mm}")
+    if any(v.mask is None for v in views) and not background:
+        _fail(sj, "background_images", "views without 'mask' need background frames for the silhouettes")
+
+    reference = raw.get("reference") or {}
+    if not isinstance(reference, dict):
+        _fail(sj, "reference", "must be an object, e.g. {'volume_mm3': 180000}")
+    if "volume_mm3" in reference and not (isinstance(reference["volume_mm3"], (int, float)) and reference["volume_mm3"] > 0):
+        _fail(sj, "reference.volume_mm3", "must be a positive number")
+
+    session = Session(
+        root=root,
+        name=str(raw.get("name", root.name)),
+        image_size=size,
+        roi_min=roi_min,
+        roi_max=roi_max,
+        views=tuple(views),
+        pattern=pattern,
+        intrinsic_images=intrinsic,
+        turntable_images=tuple(turntable),
+        background_images=background,
+        camera=camera,
+        reference=dict(reference),
+        calibration=calibration,
+        raw=raw,
+    )
+    if check_images:
+        _check_images(session)
+    return session
+
+
+def _check_images(s):
+    items = [(p, f"calibration.intrinsic_images[{i}]") for i, p in enumerate(s.intrinsic_images)]
+    items += [(p, f"calibration.turntable_images[{i}].image") for i, (p, _) in enumerate(s.turntable_images)]
+    items += [(p, f"background_images[{i}]") for i, p in enumerate(s.background_images)]
+    for i, v in enumerate(s.views):
+        items.append((v.image, f"views[{i}].image"))
+        if v.mask is not None:
+            items.append((v.mask, f"views[{i}].mask"))
+    for p, key in items:
+        s.read(p, key=key)
+
+
+def write_json(path, obj):
+    """Write ``obj`` as indented JSON (numpy arrays and scalars converted)."""
+
+    def default(o):
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, Path):
+            return o.as_posix()
+        raise TypeError(f"cannot serialise {type(o).__name__}")
+
+    Path(path).write_text(json.dumps(obj, indent=2, default=default) + "\n", encoding="utf-8")
