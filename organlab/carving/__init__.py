@@ -1,0 +1,17 @@
+"""Voxel carving: the visual hull of silhouettes seen by calibrated cameras.
+
+Public functions are re-exported from private modules:
+
+* :func:`carve_reference` -- the thesis's test, written plainly in numpy (the
+  yardstick every faster method is tested against, voxel for voxel);
+* :func:`carve` -- the same bounding-box test decided coarse-to-fine with
+  summed-area tables (fast);
+* :class:`ProgressiveCarver` -- add views one at a time, keep the current hull;
+* :func:`hull_field` -- a scalar field whose 0.5 level lies on the visual
+  hull's surface, for sub-voxel surfaces.
+"""
+
+from ._bbox import ProgressiveCarver, carve, carve_reference
+from ._field import hull_field
+
+__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field"]

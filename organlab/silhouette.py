@@ -1,0 +1,331 @@
+"""Silhouettes: background model, subtraction, threshold, clean-up.
+
+The specimen's silhouette in a view is where the view differs from the empty
+scene.  The stage is a chain of small functions::
+
+    bg = background_model(frames)                 # mean or median of empty frames
+    diff = difference(image, bg)                  # grey or colour distance
+    t = auto_threshold(diff)                      # or a value picked by the user
+    mask = clean_mask(diff > t)                   # opening, closing, components, holes
+    cov = coverage(image, bg, mask)               # sub-pixel silhouette in [0, 1]
+
+:func:`session_silhouettes` runs it for every view of a session, using a
+view's own ``mask`` where the session gives one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import SessionError
+
+__all__ = [
+    "background_model",
+    "difference",
+    "auto_threshold",
+    "clean_mask",
+    "coverage",
+    "Silhouette",
+    "silhouette",
+    "session_silhouettes",
+]
+
+
+def _stack(frames):
+    frames = list(frames)
+    if not frames:
+        raise ValueError("background_model needs at least one frame")
+    shapes = {f.shape for f in frames}
+    if len(shapes) != 1:
+        raise ValueError(f"background frames differ in shape: {sorted(shapes)}")
+    return np.stack([np.asarray(f) for f in frames])
+
+
+def background_model(frames, *, method="median"):
+    """Model of the empty scene from several frames.
+
+    Parameters
+    ----------
+    frames : sequence of (H, W) or (H, W, 3) uint8
+        Images of the empty scene (no specimen), same size.
+    method : {'median', 'mean'}
+        Per-pixel statistic.  The median ignores a passing disturbance in a
+        few frames; the mean averages the noise down a little further.
+
+    Returns
+    -------
+    background : (H, W) or (H, W, 3) float32
+    """
+    stack = _stack(frames)
+    if method == "median":
+        return np.median(stack, axis=0).astype(np.float32)
+    if method == "mean":
+        return stack.mean(axis=0, dtype=np.float64).astype(np.float32)
+    raise ValueError(f"method must be 'median' or 'mean', got {method!r}")
+
+
+def difference(image, background, *, mode="color"):
+    """Per-pixel distance between an image and the background model.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+    background : (H, W) or (H, W, 3) float
+    mode : {'color', 'grey'}
+        ``'color'``: Euclidean distance of the RGB vectors divided by
+        sqrt(3) (so a grey change of d levels gives d); ``'grey'``: absolute
+        difference of the luminances.
+
+    Returns
+    -------
+    diff : (H, W) float32, grey levels
+    """
+    img = np.asarray(image, dtype=np.float32)
+    bg = np.asarray(background, dtype=np.float32)
+    if img.shape[:2] != bg.shape[:2]:
+        raise ValueError(f"image {img.shape[:2]} and background {bg.shape[:2]} differ in size")
+    if mode not in ("color", "grey"):
+        raise ValueError(f"mode must be 'color' or 'grey', got {mode!r}")
+    if img.ndim == 3 and bg.ndim == 2:
+        img = _luma(img)
+    elif img.ndim == 2 and bg.ndim == 3:
+        bg = _luma(bg)
+    if img.ndim == 3 and mode == "grey":
+        img, bg = _luma(img), _luma(bg)
+    d = img - bg
+    if d.ndim == 3:
+        return (np.sqrt((d * d).sum(axis=2)) / np.sqrt(3.0)).astype(np.float32)
+    return np.abs(d)
+
+
+def _luma(rgb):
+    return rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def auto_threshold(diff):
+    """Otsu's threshold of a difference image.
+
+    Parameters
+    ----------
+    diff : (H, W) float
+        From :func:`difference`.
+
+    Returns
+    -------
+    threshold : float, grey levels
+    """
+    from skimage.filters import threshold_otsu
+
+    d = np.asarray(diff, dtype=np.float32)
+    if not np.isfinite(d).all():
+        raise ValueError("difference image has non-finite values")
+    if float(d.max()) - float(d.min()) < 1e-6:
+        raise ValueError("difference image is constant: the view does not differ from the background")
+    return float(threshold_otsu(d))
+
+
+def _disk(radius):
+    import cv2
+
+    r = int(radius)
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def clean_mask(mask, *, open_radius=1, close_radius=2, min_area_fraction=0.05, fill_holes=True):
+    """Clean a raw thresholded silhouette.
+
+    Morphological opening removes isolated noise pixels, closing bridges
+    hairline cracks; then only the connected components that belong to the
+    specimen are kept (the largest and any at least ``min_area_fraction`` of
+    its area: a specimen may show as several parts, noise blobs are small),
+    and holes wholly inside the silhouette are filled.
+
+    Parameters
+    ----------
+    mask : (H, W) bool
+    open_radius, close_radius : int, px
+        Radii of the disk structuring elements (0 disables the step).
+    min_area_fraction : float
+        Components smaller than this fraction of the largest are dropped.
+    fill_holes : bool
+        Fill background regions that do not touch the image border.
+
+    Returns
+    -------
+    (H, W) bool
+    """
+    import cv2
+
+    m = np.asarray(mask).astype(np.uint8)
+    if m.ndim != 2:
+        raise ValueError(f"mask must be 2-D, got shape {m.shape}")
+    if open_radius > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disk(open_radius))
+    if close_radius > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(close_radius))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    if n <= 1:
+        return np.zeros(m.shape, dtype=bool)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    keep = np.flatnonzero(areas >= min_area_fraction * areas.max()) + 1
+    out = np.isin(labels, keep)
+    if fill_holes:
+        inv = (~out).astype(np.uint8)
+        n2, lab2, _, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
+        border = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
+        holes = ~np.isin(lab2, border) & (inv > 0)
+        out = out | holes
+    return out
+
+
+def coverage(image, background, mask, *, window=5):
+    """Sub-pixel silhouette: the fraction of each pixel covered by the specimen.
+
+    A pixel on the silhouette's edge that the specimen covers by a fraction
+    ``a`` shows the blend ``I = a F + (1 - a) B`` of the specimen's colour
+    ``F`` and the background ``B`` (anti-aliasing, or the camera's pixel
+    integration).  ``B`` is the background model; ``F`` is taken from the
+    nearest pixels wholly inside the mask (mean over a ``window`` square);
+    ``a`` is the least-squares solution ``(I - B).(F - B) / |F - B|^2``.
+    Pixels away from the mask's edge are 0 or 1 exactly.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+    background : (H, W) or (H, W, 3) float
+    mask : (H, W) bool
+        The cleaned silhouette (:func:`clean_mask`).
+    window : int, px
+        Size of the square over which the specimen's colour is averaged.
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1]
+    """
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    bg = np.asarray(background, np.float32)
+    if img.ndim == 2:
+        img = img[..., None]
+    if bg.ndim == 2:
+        bg = bg[..., None]
+    if img.shape[2] != bg.shape[2]:
+        img, bg = _luma(img) if img.shape[2] == 3 else img[..., 0], _luma(bg) if bg.shape[2] == 3 else bg[..., 0]
+        img, bg = img[..., None], bg[..., None]
+    m8 = np.asarray(mask, dtype=np.uint8)
+    if m8.shape != img.shape[:2]:
+        raise ValueError(f"mask {m8.shape} and image {img.shape[:2]} differ in size")
+    k = np.ones((3, 3), np.uint8)
+    inner = cv2.erode(m8, k, borderType=cv2.BORDER_REPLICATE)
+    outer = cv2.dilate(m8, k).astype(bool)
+    band = outer & ~inner.astype(bool)
+    w = (int(window), int(window))
+    weight = cv2.boxFilter(inner.astype(np.float32), -1, w, normalize=False)
+    fg = np.stack([cv2.boxFilter(img[..., c] * inner, -1, w, normalize=False) for c in range(img.shape[2])], axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fg = fg / weight[..., None]
+    d_img = img - bg
+    d_fg = fg - bg
+    den = (d_fg * d_fg).sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = (d_img * d_fg).sum(axis=-1) / den
+    # edge pixels with no inside neighbour in the window (or no contrast) keep the binary mask
+    a = np.where((weight > 0) & (den > 1.0), np.clip(a, 0.0, 1.0), m8.astype(np.float32))
+    cov = np.where(band, a, inner.astype(np.float32))
+    return cov.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Silhouette:
+    """The silhouette of one view.
+
+    Attributes
+    ----------
+    mask : (H, W) bool
+    coverage : (H, W) float32 in [0, 1]
+        Sub-pixel silhouette (equal to ``mask`` for a given mask).
+    threshold : float or None
+        Grey-level threshold used (None for a given mask).
+    source : str
+        ``'subtraction'`` or ``'given'``.
+    """
+
+    mask: np.ndarray
+    coverage: np.ndarray
+    threshold: float | None
+    source: str
+
+
+def silhouette(image, background, *, threshold=None, mode="color", **clean):
+    """Silhouette of one view by background subtraction.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+    background : (H, W) or (H, W, 3) float
+        From :func:`background_model`.
+    threshold : float, optional
+        Grey levels; Otsu's threshold of the difference image when omitted.
+    mode : {'color', 'grey'}
+    **clean
+        Options of :func:`clean_mask`.
+
+    Returns
+    -------
+    Silhouette
+    """
+    diff = difference(image, background, mode=mode)
+    t = auto_threshold(diff) if threshold is None else float(threshold)
+    if t <= 0:
+        raise ValueError(f"threshold must be > 0 grey levels, got {t}")
+    mask = clean_mask(diff > t, **clean)
+    return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
+
+
+def session_silhouettes(session, *, threshold=None, mode="color", background="median", progress=None, **clean):
+    """Silhouettes of every view of a session.
+
+    A view with a ``mask`` in ``session.json`` uses it as given (non-zero =
+    specimen); the others are found by background subtraction against the
+    model of ``background_images``.
+
+    Parameters
+    ----------
+    session : Session
+    threshold : float, optional
+        Grey levels, the same for every view; Otsu's per view when omitted.
+    mode : {'color', 'grey'}
+    background : {'median', 'mean'}
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    list of Silhouette, one per view
+    """
+    bg = None
+    out = []
+    n = len(session.views)
+    for i, view in enumerate(session.views):
+        if view.mask is not None:
+            m = session.read(view.mask, key=f"views[{i}].mask", grey=True) > 0
+            out.append(Silhouette(m, m.astype(np.float32), None, "given"))
+        else:
+            if bg is None:
+                frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
+                bg = background_model(frames, method=background)
+            img = session.read(view.image, key=f"views[{i}].image")
+            try:
+                out.append(silhouette(img, bg, threshold=threshold, mode=mode, **clean))
+            except ValueError as e:
+                raise SessionError(f"{session.json_path}: views[{i}] ({session.relpath(view.image)}): {e}") from None
+            if not out[-1].mask.any():
+                raise SessionError(
+                    f"{session.json_path}: views[{i}] ({session.relpath(view.image)}): the silhouette is empty; "
+                    "lower --threshold or check the background frames"
+                )
+        if progress is not None:
+            progress(i + 1, n)
+    return out

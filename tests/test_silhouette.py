@@ -1,0 +1,118 @@
+import numpy as np
+import pytest
+
+from organlab.silhouette import (
+    auto_threshold,
+    background_model,
+    clean_mask,
+    coverage,
+    difference,
+    silhouette,
+)
+
+H, W = 120, 160
+
+
+def _scene(rng, noise=2.0, ss=8):
+    """Background gradient + a textured disk (anti-aliased by supersampling)."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    bg = np.stack([30 + 0.2 * xx, 40 + 0.1 * yy, 60 + 0 * xx], axis=-1).astype(np.float64)
+    cx, cy, r = 80.3, 58.7, 30.2
+    sub = (np.arange(ss) + 0.5) / ss - 0.5
+    cov = np.zeros((H, W))
+    for dy in sub:
+        for dx in sub:
+            cov += ((xx + dx - cx) ** 2 + (yy + dy - cy) ** 2) <= r * r
+    cov /= ss * ss
+    tex = np.stack([170 + 30 * np.sin(xx / 5.0), 90 + 20 * np.cos(yy / 7.0), 80 + 0 * xx], axis=-1)
+    clean = cov[..., None] * tex + (1 - cov[..., None]) * bg
+
+    def noisy(img):
+        return np.clip(img + rng.normal(0, noise, img.shape), 0, 255).round().astype(np.uint8)
+
+    frames = [noisy(bg) for _ in range(10)]
+    return frames, noisy(clean), cov, np.pi * r * r
+
+
+def test_background_model_reduces_noise():
+    rng = np.random.default_rng(0)
+    frames, _, _, _ = _scene(rng, noise=4.0)
+    truth = _scene(np.random.default_rng(0), noise=0.0)[0][0].astype(np.float32)
+    for method in ("median", "mean"):
+        bg = background_model(frames, method=method)
+        assert bg.dtype == np.float32 and bg.shape == (H, W, 3)
+        # one frame's noise is 4 levels; the model of 10 frames is well under it
+        assert np.sqrt(((bg - truth) ** 2).mean()) < 2.0
+    with pytest.raises(ValueError, match="median"):
+        background_model(frames, method="mode")
+    with pytest.raises(ValueError, match="differ in shape"):
+        background_model([frames[0], frames[0][:10]])
+
+
+def test_silhouette_matches_the_rendered_disk():
+    rng = np.random.default_rng(1)
+    frames, img, cov, area = _scene(rng)
+    bg = background_model(frames)
+    s = silhouette(img, bg)
+    truth = cov >= 0.5
+    # only pixels on the anti-aliased rim may disagree
+    wrong = s.mask != truth
+    assert wrong.sum() <= 0.02 * truth.sum()
+    assert np.all((cov[wrong] > 0.05) & (cov[wrong] < 0.95))
+    # sub-pixel coverage measures the disk's area better than the binary mask
+    assert abs(s.coverage.sum() - area) < 0.01 * area
+    assert abs(s.coverage.sum() - area) < abs(s.mask.sum() - area) + 1.0
+    assert 5 < s.threshold < 100
+
+
+def test_threshold_given_and_grey_mode():
+    rng = np.random.default_rng(2)
+    frames, img, cov, _ = _scene(rng)
+    bg = background_model(frames)
+    d = difference(img, bg, mode="grey")
+    assert d.shape == (H, W) and d[cov == 0].mean() < 3 and d[cov == 1].mean() > 40
+    s = silhouette(img, bg, threshold=20.0)
+    assert s.threshold == 20.0
+    assert (s.mask != (cov >= 0.5)).sum() < 0.03 * (cov >= 0.5).sum()
+    t = auto_threshold(difference(img, bg))
+    assert d[cov == 0].max() < t or t > 10
+
+
+def test_clean_mask_removes_noise_and_fills_holes():
+    m = np.zeros((H, W), bool)
+    m[30:90, 40:120] = True
+    raw = m.copy()
+    raw[50:53, 60:63] = False  # a hole
+    raw[5, 5] = raw[100, 150] = raw[110, 20] = True  # salt
+    raw[10:14, 140:144] = True  # a small blob, 16 px
+    out = clean_mask(raw)
+    # opening rounds the rectangle's four corner pixels off; nothing else differs
+    diff = np.argwhere(out != m)
+    assert len(diff) <= 4 and all(tuple(p) in {(30, 40), (30, 119), (89, 40), (89, 119)} for p in diff)
+    # a second large component is kept
+    raw2 = m.copy()
+    raw2[100:115, 10:40] = True
+    assert clean_mask(raw2)[105, 20]
+    # an all-empty mask stays empty
+    assert not clean_mask(np.zeros((H, W), bool)).any()
+
+
+def test_coverage_of_a_blended_edge():
+    # a vertical edge at column 10.3: column 10 is covered 70 % by the specimen
+    bg = np.full((20, 20, 3), 30.0, np.float32)
+    fg = np.array([200.0, 120.0, 60.0])
+    img = np.tile(bg, (1, 1, 1)).copy()
+    img[:, 11:] = fg
+    img[:, 10] = 0.7 * fg + 0.3 * 30.0
+    mask = np.zeros((20, 20), bool)
+    mask[:, 10:] = True
+    c = coverage(img.round().astype(np.uint8), bg, mask)
+    np.testing.assert_allclose(c[:, 10], 0.7, atol=0.01)
+    assert (c[:, 12:] == 1).all() and (c[:, :9] == 0).all()
+    with pytest.raises(ValueError, match="differ in size"):
+        coverage(img, bg, mask[:5])
+
+
+def test_constant_difference_is_an_error():
+    with pytest.raises(ValueError, match="constant"):
+        auto_threshold(np.zeros((10, 10)))
