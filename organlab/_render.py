@@ -177,7 +177,9 @@ def render(camera, *, supersample, board=None, specimen=None, plate=True):
         if plate:
             layers.append(plate_hits(o, d))
         if board is not None:
-            layers.append(board_hits(o, d, *board))
+            # the printed sheet lies on the plate top: it wins the tie
+            tb, ab, nb = board_hits(o, d, *board)
+            layers.append((tb * (1.0 - 1e-9), ab, nb))
         for t, albedo, normal in layers:
             closer = t < t_best
             if np.any(closer):
