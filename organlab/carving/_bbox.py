@@ -110,7 +110,40 @@ def _project(camera, points):
         return camera.project(points)
 
 
-def _carved_by_view(uv, sat, width, height):
+def _box_corners(a):
+    """The 8 corner views ``a[i:, j:, k:]`` of an ``(a+1, b+1, c+1)`` corner array."""
+    return [
+        a[i : a.shape[0] - 1 + i, j : a.shape[1] - 1 + j, k : a.shape[2] - 1 + k]
+        for i in (0, 1)
+        for j in (0, 1)
+        for k in (0, 1)
+    ]
+
+
+def _carved_from_box(umin, umax, vmin, vmax, sat, width, height, min_pixels):
+    """The bounding-box test on boxes already known (any shape, NaN = behind).
+
+    Returns ``carved``: the box lies in the image and covers fewer than
+    ``min_pixels`` silhouette pixels.
+    """
+    with np.errstate(invalid="ignore", over="ignore"):
+        c0 = np.ceil(umin - 0.5)
+        c1 = np.floor(umax + 0.5)
+        r0 = np.ceil(vmin - 0.5)
+        r1 = np.floor(vmax + 0.5)
+        # NaN (a corner on or behind the camera plane) compares False
+        inside = (c0 >= 0) & (r0 >= 0) & (c1 <= width - 1) & (r1 <= height - 1)
+    c0 = c0[inside].astype(np.intp)
+    c1 = c1[inside].astype(np.intp) + 1
+    r0 = r0[inside].astype(np.intp)
+    r1 = r1[inside].astype(np.intp) + 1
+    count = sat[r1, c1] - sat[r0, c1] - sat[r1, c0] + sat[r0, c0]
+    carved = np.zeros(np.shape(umin), dtype=bool)
+    carved[inside] = count < min_pixels
+    return carved
+
+
+def _carved_by_view(uv, sat, width, height, min_pixels=1):
     """Which voxels of a block one view carves, from projected corners.
 
     Parameters
@@ -124,38 +157,36 @@ def _carved_by_view(uv, sat, width, height):
     -------
     carved : (a, b, c) bool
     """
+    cu = _box_corners(uv[..., 0])
+    cv = _box_corners(uv[..., 1])
+    # np.minimum / np.maximum propagate NaN: a corner behind the camera
+    # makes the whole box NaN, which never carves.
+    return _carved_from_box(
+        np.minimum.reduce(cu), np.maximum.reduce(cu), np.minimum.reduce(cv), np.maximum.reduce(cv),
+        sat, width, height, min_pixels,
+    )
+
+
+def _exact_carved(flat, grid, axes, sat, camera, min_pixels):
+    """The reference test on a few voxels given by flat (C-order) indices."""
+    ix, iy, iz = np.unravel_index(flat, grid.shape)
+    ax, ay, az = axes
+    pts = np.empty((flat.size, 8, 3))
+    n = 0
+    for i in (0, 1):
+        for j in (0, 1):
+            for k in (0, 1):
+                pts[:, n, 0] = ax[ix + i]
+                pts[:, n, 1] = ay[iy + j]
+                pts[:, n, 2] = az[iz + k]
+                n += 1
+    uv = _project(camera, pts.reshape(-1, 3)).reshape(flat.size, 8, 2)
     u = uv[..., 0]
     v = uv[..., 1]
-    shifts = [(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-
-    def corners(a):
-        return [a[i : a.shape[0] - 1 + i, j : a.shape[1] - 1 + j, k : a.shape[2] - 1 + k] for i, j, k in shifts]
-
-    cu = corners(u)
-    cv = corners(v)
-    # np.minimum / np.maximum propagate NaN: a corner behind the camera
-    # makes the whole box NaN and the comparisons below False (not carved).
-    umin = np.minimum.reduce(cu)
-    umax = np.maximum.reduce(cu)
-    vmin = np.minimum.reduce(cv)
-    vmax = np.maximum.reduce(cv)
-    with np.errstate(invalid="ignore", over="ignore"):
-        c0 = np.ceil(umin - 0.5)
-        c1 = np.floor(umax + 0.5)
-        r0 = np.ceil(vmin - 0.5)
-        r1 = np.floor(vmax + 0.5)
-        inside = (c0 >= 0) & (r0 >= 0) & (c1 <= width - 1) & (r1 <= height - 1)
-    c0 = c0[inside].astype(np.intp)
-    c1 = c1[inside].astype(np.intp) + 1
-    r0 = r0[inside].astype(np.intp)
-    r1 = r1[inside].astype(np.intp) + 1
-    count = sat[r1, c1] - sat[r0, c1] - sat[r1, c0] + sat[r0, c0]
-    carved = np.zeros(umin.shape, dtype=bool)
-    carved[inside] = count == 0
-    return carved
+    return _carved_from_box(u.min(1), u.max(1), v.min(1), v.max(1), sat, camera.width, camera.height, min_pixels)
 
 
-def _reference_counts(masks, cameras, grid, chunk_voxels, alive=None):
+def _reference_counts(masks, cameras, grid, chunk_voxels, min_pixels=1):
     """Number of views carving each voxel, plain numpy, chunked along x.
 
     Returns
@@ -169,19 +200,91 @@ def _reference_counts(masks, cameras, grid, chunk_voxels, alive=None):
     sats = [_sat(m) for m in masks]
     for x0 in range(0, nx, slab):
         x1 = min(nx, x0 + slab)
-        if alive is not None and not alive[x0:x1].any():
-            continue
         X, Y, Z = np.meshgrid(ax[x0 : x1 + 1], ay, az, indexing="ij")
         pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
         del X, Y, Z
         for cam, sat in zip(cameras, sats):
             uv = _project(cam, pts).reshape(x1 - x0 + 1, ny + 1, nz + 1, 2)
-            counts[x0:x1] += _carved_by_view(uv, sat, cam.width, cam.height)
+            counts[x0:x1] += _carved_by_view(uv, sat, cam.width, cam.height, min_pixels)
     return counts
 
 
+def _check_min_pixels(min_pixels):
+    if isinstance(min_pixels, bool) or not isinstance(min_pixels, (int, np.integer)) or min_pixels < 1:
+        raise ValueError(f"min_pixels must be an integer >= 1, got {min_pixels!r}")
+    return int(min_pixels)
+
+
+def _view_order(n):
+    """Views in van der Corput order (0, n/2, n/4, 3n/4, ...): for views
+    sorted by angle the first few are far apart and carve most early."""
+    def radical_inverse(i):
+        f, r = 0.5, 0.0
+        while i:
+            r += f * (i & 1)
+            i >>= 1
+            f /= 2
+        return r
+
+    return sorted(range(n), key=radical_inverse)
+
+
+class _Engine:
+    """Per-voxel carve counts plus a pyramid of alive counts, updated view by view."""
+
+    def __init__(self, grid, tolerance, min_pixels, levels=4):
+        from . import _bbox_numba as nbk
+
+        self._nbk = nbk
+        self.grid = grid
+        self.tol = tolerance
+        self.min_pixels = min_pixels
+        self.axes = _corner_axes(grid)
+        shape = np.array(grid.shape, dtype=np.int64)
+        L = int(max(1, min(levels, int(np.ceil(np.log2(shape.max()))))))
+        self.L = L
+        self.dims = np.array([-(-shape // (1 << l)) for l in range(L + 1)], dtype=np.int64)
+        sizes = np.prod(self.dims, axis=1)
+        sizes[0] = 0  # level 0 is the counts array itself
+        self.off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        self.pyr = np.zeros(int(sizes.sum()), dtype=np.int64)
+        self.counts = np.zeros(grid.shape, dtype=np.uint16)
+        nbk.build_pyramid(self.counts, self.pyr, self.off, self.dims, L, self.tol)
+        self.tops = np.indices(self.dims[L]).reshape(3, -1).T.astype(np.int64).copy()
+        self._deferred = None
+        self.n_deferred = 0
+
+    def apply(self, mask, camera):
+        nbk = self._nbk
+        L = self.L
+        top_alive = self.pyr[self.off[L] : self.off[L] + np.prod(self.dims[L])]
+        tops = np.ascontiguousarray(self.tops[top_alive > 0])
+        if tops.shape[0] == 0:
+            return
+        sat = _sat(mask)
+        cap = 1 << (3 * L)
+        if self._deferred is None or self._deferred.size < tops.shape[0] * cap:
+            self._deferred = np.empty(self.tops.shape[0] * cap, dtype=np.int64)
+        ndef = np.zeros(tops.shape[0], dtype=np.int64)
+        ax, ay, az = self.axes
+        nbk.carve_view(
+            nbk.camera_params(camera), sat, camera.width, camera.height, ax, ay, az, self.counts, self.pyr,
+            self.off, self.dims, L, tops, self.tol, self.min_pixels, self._deferred, ndef,
+        )
+        (which,) = np.nonzero(ndef)
+        if which.size:
+            flat = np.concatenate([self._deferred[t * cap : t * cap + ndef[t]] for t in which])
+            self.n_deferred += flat.size
+            carved = _exact_carved(flat, self.grid, self.axes, sat, camera, self.min_pixels)
+            nbk.kill_many(self.counts, self.pyr, self.off, self.dims, L, flat[carved], self.tol)
+
+    @property
+    def occupancy(self):
+        return self.counts <= self.tol
+
+
 # ------------------------------------------------------------------ public
-def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000):
+def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000, min_pixels=1):
     """Visual hull by the thesis's bounding-box test, plain vectorized numpy.
 
     Every voxel is tested in every view (see the module docstring for the
@@ -203,6 +306,9 @@ def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000):
     chunk_voxels : int
         Voxels processed at a time (bounds the memory: about 300 bytes per
         voxel of a chunk; the default needs about 0.6 GB).
+    min_pixels : int
+        A view keeps a voxel if at least this many silhouette pixels lie in
+        its box (default 1: the thesis's test, any silhouette pixel).
 
     Returns
     -------
@@ -219,48 +325,77 @@ def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000):
     """
     _check_grid(grid)
     masks, cameras = _check_views(masks, cameras)
-    if not int(chunk_voxels) >= 1:
-        raise ValueError(f"chunk_voxels must be >= 1, got {chunk_voxels}")
-    return _reference_counts(masks, cameras, grid, chunk_voxels) == 0
+    min_pixels = _check_min_pixels(min_pixels)
+    if isinstance(chunk_voxels, bool) or not isinstance(chunk_voxels, (int, np.integer)) or chunk_voxels < 1:
+        raise ValueError(f"chunk_voxels must be an integer >= 1, got {chunk_voxels!r}")
+    return _reference_counts(masks, cameras, grid, chunk_voxels, min_pixels) == 0
 
 
 def carve(masks, cameras, grid, *, tolerance=0, min_pixels=1):
-    """Visual hull: voxels that at most ``tolerance`` views carve.
+    """Visual hull: the voxels that at most ``tolerance`` views carve.
 
     The same bounding-box test as :func:`carve_reference` (module docstring),
-    with the same result voxel for voxel.
+    with the same result voxel for voxel, decided coarse to fine: blocks of
+    up to 16^3 voxels whose (conservatively bounded) projection holds no
+    silhouette pixel are carved at once, blocks wholly inside the silhouette
+    kept at once, and only blocks on the silhouette's edge refined, each test
+    O(1) with a summed-area table of the mask (numba, parallel over blocks).
 
     Parameters
     ----------
     masks : sequence of (H, W) bool arrays
-        Silhouettes, ``True`` = specimen; one per view.
+        Silhouettes, ``True`` = specimen; one per view.  Numeric arrays are
+        accepted (non-zero = specimen).
     cameras : sequence of Camera
         The calibrated camera of each view; ``image_size == (W, H)``.
     grid : VoxelGrid
         The voxel space, mm, world frame.
     tolerance : int
         A voxel is kept if at most this many views carve it; 0 (default) is
-        the classic visual hull, k > 0 survives k bad silhouettes (a hole
-        punched in a mask) at the price of a hull looser where only k + 1
-        views see through it.
+        the classic visual hull.  k > 0 survives k bad silhouettes (a hole
+        punched in a mask, a missed part) at the price of a looser hull where
+        fewer than k + 1 views see past the specimen.
     min_pixels : int
-        A view keeps a voxel if at least this many silhouette pixels lie in
-        its box (default 1, the thesis's test).
+        A view keeps a voxel only if at least this many silhouette pixels lie
+        in its box (default 1: the thesis's test).  Noise: the box test is
+        insensitive to pepper (false background pixels) inside the silhouette,
+        since one silhouette pixel in the box keeps the voxel; isolated salt
+        (false silhouette pixels) outside keeps the voxels behind it, which
+        other views then carve, or ``min_pixels=2`` ignores.  Cleaning the
+        silhouettes (``organlab.silhouette``) is the proper cure for both.
 
     Returns
     -------
     occupancy : grid.shape bool
+        ``True`` for kept voxels (axes x, y, z).
+
+    Raises
+    ------
+    ValueError
+        If the numbers of masks and cameras differ, there is no view, a mask
+        is not 2-D or its shape is not the camera's ``(height, width)``, or
+        ``tolerance`` / ``min_pixels`` is not a valid integer.
+    TypeError
+        If a camera is not a :class:`Camera` or grid not a :class:`VoxelGrid`.
     """
     _check_grid(grid)
     masks, cameras = _check_views(masks, cameras)
     tolerance = _check_tolerance(tolerance)
-    if min_pixels != 1:
-        raise NotImplementedError("min_pixels != 1 is not implemented yet")
-    return _reference_counts(masks, cameras, grid, 2_000_000) <= tolerance
+    min_pixels = _check_min_pixels(min_pixels)
+    engine = _Engine(grid, tolerance, min_pixels)
+    for i in _view_order(len(masks)):
+        engine.apply(masks[i], cameras[i])
+    return engine.occupancy
 
 
 class ProgressiveCarver:
     """Carve view by view, keeping the current visual hull.
+
+    Each :meth:`add_view` tests only the voxels still kept and removes what
+    the new view carves; with ``tolerance`` it keeps per-voxel counts of
+    carving views.  After adding all views, :attr:`occupancy` equals
+    ``carve(masks, cameras, grid, tolerance=tolerance, min_pixels=min_pixels)``
+    whatever the order of the views.
 
     Parameters
     ----------
@@ -269,16 +404,16 @@ class ProgressiveCarver:
     tolerance : int
         As in :func:`carve`: a voxel stays while at most ``tolerance`` of the
         views added so far carve it.
-
-    After adding all views, :attr:`occupancy` equals ``carve(masks, cameras,
-    grid, tolerance=tolerance)``.
+    min_pixels : int
+        As in :func:`carve`.
     """
 
-    def __init__(self, grid, *, tolerance=0):
+    def __init__(self, grid, *, tolerance=0, min_pixels=1):
         _check_grid(grid)
         self.grid = grid
         self.tolerance = _check_tolerance(tolerance)
-        self._counts = np.zeros(grid.shape, dtype=np.uint16)
+        self.min_pixels = _check_min_pixels(min_pixels)
+        self._engine = _Engine(grid, self.tolerance, self.min_pixels)
         self._n_views = 0
 
     @property
@@ -288,8 +423,16 @@ class ProgressiveCarver:
 
     @property
     def occupancy(self):
-        """Current hull, ``grid.shape`` bool (a copy)."""
-        return self._counts <= self.tolerance
+        """Current hull, ``grid.shape`` bool (a new array)."""
+        return self._engine.occupancy
+
+    @property
+    def carve_counts(self):
+        """Number of views that carved each voxel, ``grid.shape`` uint16.
+
+        Counting stops once a voxel is removed (at ``tolerance + 1``).
+        """
+        return self._engine.counts.copy()
 
     def add_view(self, mask, camera):
         """Carve with one more view and return the new occupancy.
@@ -306,8 +449,6 @@ class ProgressiveCarver:
         occupancy : grid.shape bool
         """
         m = _check_view(mask, camera)
-        alive = self._counts <= self.tolerance
-        carved = _reference_counts([m], [camera], self.grid, 2_000_000, alive=alive)
-        self._counts += carved * alive
+        self._engine.apply(m, camera)
         self._n_views += 1
         return self.occupancy
