@@ -16,7 +16,7 @@ $(STAMP): environment.txt pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/organlab reconstruct sample_sessions/aaa_phantom --out demo_out --voxel-size 1
+	$(BIN)/organlab reconstruct sample_sessions/aaa_phantom --out demo_out --voxel-size 1 --picture
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider

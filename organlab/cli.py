@@ -47,6 +47,7 @@ def _parser():
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
                    help="photo-consistency threshold (std of grey levels) for --method coloring")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
+    r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
@@ -83,6 +84,13 @@ def _reconstruct(a):
         progress=_bars(a.quiet),
     )
     paths = write_outputs(rec, a.out)
+    if a.picture:
+        from .figures import mesh_snapshot
+
+        ref = rec.report.get("mesh_volume_error_pct")
+        title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {a.voxel_size:g} mm"
+        title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
+        paths["picture"] = mesh_snapshot(rec.mesh, a.out / "mesh.png", title=title)
     print(f"organlab reconstruct: {rec.session.name} -> {a.out}")
     print(summary_table(rec.report))
     print(f"  wrote {', '.join(p.name for p in paths.values())}")
