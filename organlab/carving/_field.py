@@ -1,0 +1,437 @@
+"""Sub-voxel visual hull: a scalar field whose 0.5 level is the hull's surface.
+
+A binary voxel model puts its surface on voxel faces, so its volume error is
+of the order of the voxel size times the surface area.  :func:`hull_field`
+instead samples, at every voxel centre, how far the centre lies inside the
+visual hull, so that marching cubes at level 0.5 places the surface between
+voxel centres, within a small fraction of a voxel of the true hull.
+
+Method
+------
+1. For each view, a signed distance image (px, inside positive) to the
+   silhouette's outline, exact near the outline and sub-pixel:
+
+   * the outline crosses every lattice edge between two neighbouring pixel
+     centres of opposite class (coverage ``>= 0.5`` vs ``< 0.5``).  Where it
+     crosses is estimated from the coverage of the pixels along that row (or
+     column): with area coverage, the pixels from a fully covered one to an
+     empty one hold exactly the length of the row inside the silhouette, so
+     ``crossing = (first full pixel) - 0.5 + sum(coverage)``, exact for a
+     straight outline at any angle (walks are limited to 3 pixels each side
+     and the crossing is kept between the two pixel centres).  A bool mask
+     puts the crossing half-way between the pixel centres;
+   * the crossings are joined cell by cell by marching squares (saddles
+     resolved by the mean coverage of the cell) into line segments, and the
+     Euclidean distance to the nearest segment is computed exactly for every
+     pixel within a band around the outline (wide enough for one voxel,
+     at most 32 px); further away ``cv2.distanceTransform`` of the two
+     classes is used (those values only need to be large: the field is
+     clipped at one voxel).
+2. Every voxel centre is projected with the full camera model (distortion
+   and skew); the distance image is sampled bilinearly there and converted to
+   mm at the voxel's depth, ``d_mm = d_px * Z_cam / sqrt(det J)``, with ``J``
+   the local Jacobian (px per unit of normalized image coordinate) of the
+   projection, i.e. ``f`` corrected for the local magnification of the lens
+   distortion.
+3. The field is ``0.5 + m / voxel_size`` clipped to ``[-0.5, 1.5]``, where ``m``
+   is the minimum over views of ``d_mm`` (with ``tolerance=k``: the
+   ``(k + 1)``-th smallest, so the ``k`` most negative views of each voxel
+   are ignored).  The 0.5 level is then where the nearest silhouette outline
+   passes through the voxel's viewing ray, i.e. the hull's surface.  The
+   values are clipped at one voxel (not half a voxel) from the surface:
+   marching cubes interpolates linearly between neighbouring voxel centres,
+   one voxel apart, so both ends of an edge that crosses the surface must
+   keep their true values for the crossing to land in the right place.
+   Any padding value ``< 0.5`` (e.g. 0) closes the surface at the grid's
+   faces.
+
+Views that cannot see a voxel do not constrain it: a voxel whose centre lies
+on or behind a camera's image plane (``Z_cam <= 0``) or projects outside the
+image (beyond the outer edge of the border pixels) is neither carved nor
+kept by that view.  A voxel constrained by fewer than ``min_views`` views is
+set to -0.5 (empty).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from ..camera import Camera
+from ..grid import VoxelGrid
+
+__all__ = ["hull_field"]
+
+_WALK = 3  # pixels walked each side of a crossing to find saturated coverage
+_SAT = 1.0 - 1e-6
+_EMPTY = 1e-6
+_MAX_BAND = 32
+
+
+# ---------------------------------------------------------------- validation
+def _as_coverage(silhouette, camera, index):
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera {index} must be an organlab.camera.Camera, got {type(camera).__name__}")
+    s = np.asarray(silhouette)
+    if s.ndim != 2:
+        raise ValueError(f"silhouette {index} must be a 2-D (H, W) array, got shape {s.shape}")
+    w, h = camera.image_size
+    if s.shape != (h, w):
+        raise ValueError(
+            f"silhouette {index} has shape (H, W) = {s.shape} but its camera's image_size (width, height) is {(w, h)}"
+        )
+    if s.dtype == bool:
+        return s.astype(np.float32)
+    if not np.issubdtype(s.dtype, np.floating):
+        raise ValueError(
+            f"silhouette {index} must be a bool mask or a float coverage image in [0, 1], got dtype {s.dtype} "
+            "(use mask > 0 for a label image or image / 255.0 for 8-bit coverage)"
+        )
+    c = s.astype(np.float32)
+    if not np.all(np.isfinite(c)) or c.min() < 0.0 or c.max() > 1.0:
+        raise ValueError(f"silhouette {index}: float coverage must be finite and within [0, 1]")
+    return c
+
+
+# ------------------------------------------------------ signed distance (px)
+@njit(cache=True)
+def _crossing(line, k, inside_first):
+    """Crossing of the outline between samples ``k`` and ``k + 1`` of a line.
+
+    Returns the position along the line (in samples), within ``[k, k + 1]``.
+    """
+    n = line.shape[0]
+    if inside_first:
+        j0 = k
+        while line[j0] < _SAT and j0 > 0 and k - j0 < _WALK and line[j0 - 1] >= 0.5:
+            j0 -= 1
+        j1 = k + 1
+        while line[j1] > _EMPTY and j1 < n - 1 and j1 - k - 1 < _WALK and line[j1 + 1] < 0.5:
+            j1 += 1
+        s = 0.0
+        for j in range(j0, j1 + 1):
+            s += line[j]
+        pos = j0 - 0.5 + s
+    else:
+        j0 = k
+        while line[j0] > _EMPTY and j0 > 0 and k - j0 < _WALK and line[j0 - 1] < 0.5:
+            j0 -= 1
+        j1 = k + 1
+        while line[j1] < _SAT and j1 < n - 1 and j1 - k - 1 < _WALK and line[j1 + 1] >= 0.5:
+            j1 += 1
+        s = 0.0
+        for j in range(j0, j1 + 1):
+            s += line[j]
+        pos = j1 + 0.5 - s
+    if pos < k:
+        pos = float(k)
+    elif pos > k + 1:
+        pos = float(k + 1)
+    return pos
+
+
+@njit(cache=True)
+def _segment_update(dist, ax, ay, bx, by, band):
+    """Lower ``dist`` (px) to the distance from each pixel centre to segment a-b."""
+    h, w = dist.shape
+    c0 = max(int(math.floor(min(ax, bx))) - band, 0)
+    c1 = min(int(math.ceil(max(ax, bx))) + band, w - 1)
+    r0 = max(int(math.floor(min(ay, by))) - band, 0)
+    r1 = min(int(math.ceil(max(ay, by))) + band, h - 1)
+    dx = bx - ax
+    dy = by - ay
+    ll = dx * dx + dy * dy
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1 + 1):
+            px = c - ax
+            py = r - ay
+            t = 0.0
+            if ll > 0.0:
+                t = (px * dx + py * dy) / ll
+                if t < 0.0:
+                    t = 0.0
+                elif t > 1.0:
+                    t = 1.0
+            ex = px - t * dx
+            ey = py - t * dy
+            d = math.sqrt(ex * ex + ey * ey)
+            if d < dist[r, c]:
+                dist[r, c] = d
+
+
+@njit(cache=True)
+def _outline_distance(cov, band):
+    """Unsigned distance (px) from pixel centres to the outline, exact within ``band``.
+
+    Pixels farther than ``band`` from the outline keep the value ``band + 1``.
+    """
+    h, w = cov.shape
+    inside = cov >= 0.5
+    hx = np.full((h, w - 1), np.nan)  # column position of the crossing on row r
+    vy = np.full((h - 1, w), np.nan)  # row position of the crossing on column c
+    for r in range(h):
+        for c in range(w - 1):
+            if inside[r, c] != inside[r, c + 1]:
+                hx[r, c] = _crossing(cov[r, :], c, inside[r, c])
+    for c in range(w):
+        col = cov[:, c].copy()
+        for r in range(h - 1):
+            if inside[r, c] != inside[r + 1, c]:
+                vy[r, c] = _crossing(col, r, inside[r, c])
+    dist = np.full((h, w), band + 1.0)
+    px = np.empty(4)
+    py = np.empty(4)
+    for r in range(h - 1):
+        for c in range(w - 1):
+            # edges in order: top, right, bottom, left
+            n = 0
+            e_top = not math.isnan(hx[r, c])
+            e_right = not math.isnan(vy[r, c + 1])
+            e_bottom = not math.isnan(hx[r + 1, c])
+            e_left = not math.isnan(vy[r, c])
+            if not (e_top or e_right or e_bottom or e_left):
+                continue
+            if e_top:
+                px[n] = hx[r, c]
+                py[n] = r
+                n += 1
+            if e_right:
+                px[n] = c + 1
+                py[n] = vy[r, c + 1]
+                n += 1
+            if e_bottom:
+                px[n] = hx[r + 1, c]
+                py[n] = r + 1
+                n += 1
+            if e_left:
+                px[n] = c
+                py[n] = vy[r, c]
+                n += 1
+            if n == 2:
+                _segment_update(dist, px[0], py[0], px[1], py[1], band)
+            elif n == 4:
+                # saddle: corners tl, br share a class, tr, bl the other
+                centre = 0.25 * (cov[r, c] + cov[r, c + 1] + cov[r + 1, c] + cov[r + 1, c + 1])
+                tl_in = inside[r, c]
+                if (centre >= 0.5) == tl_in:
+                    # tl and br connected through the centre: cut off tr and bl
+                    _segment_update(dist, px[0], py[0], px[1], py[1], band)  # top-right
+                    _segment_update(dist, px[2], py[2], px[3], py[3], band)  # bottom-left
+                else:
+                    # cut off tl and br
+                    _segment_update(dist, px[3], py[3], px[0], py[0], band)  # left-top
+                    _segment_update(dist, px[1], py[1], px[2], py[2], band)  # right-bottom
+    return dist, inside
+
+
+def _signed_distance(coverage, band, *, far_field=True):
+    """Signed distance image, px, inside positive, float32 ``(H, W)``.
+
+    Exact within ``band`` px of the outline; farther, ``cv2.distanceTransform``
+    values when ``far_field``, else ``+-(band + 1)``.
+    """
+    import cv2
+
+    cov = np.ascontiguousarray(coverage, dtype=np.float64)
+    h, w = cov.shape
+    if h < 2 or w < 2:
+        raise ValueError(f"silhouettes must be at least 2 x 2 pixels, got {cov.shape}")
+    dist, inside = _outline_distance(cov, int(band))
+    far = dist > band
+    if far_field and far.any():
+        ins = inside.astype(np.uint8)
+        if ins.all() or not ins.any():
+            # no outline at all: everything equally far (the field is clipped anyway)
+            dt = np.full(cov.shape, np.float32(4 * (h + w)))
+        else:
+            d_in = cv2.distanceTransform(ins, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            d_out = cv2.distanceTransform(1 - ins, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            dt = np.where(inside, d_in, d_out) - 0.5
+        dist = np.where(far, np.maximum(dt, band + 1.0), dist)
+    return np.where(inside, dist, -dist).astype(np.float32)
+
+
+# --------------------------------------------------------- voxel accumulation
+@njit(cache=True, parallel=True)
+def _accumulate(sdf, P, dist, origin, vs, shape, best, seen, lim):
+    """Fold one view into the per-voxel ``k + 1`` smallest distances (mm).
+
+    ``P`` = ``[fx, skew*fx, cx, fy, cy]``, ``dist`` = ``[R (9), t (3), kc (5)]``.
+    ``best`` is ``(N, k + 1)`` float32 sorted ascending per row.
+    """
+    h, w = sdf.shape
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    kk = best.shape[1]
+    fx, fs, cx, fy, cy = P[0], P[1], P[2], P[3], P[4]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7], dist[8]
+    t0, t1, t2 = dist[9], dist[10], dist[11]
+    k1, k2, p1, p2, k3 = dist[12], dist[13], dist[14], dist[15], dist[16]
+    fxy = fx * fy
+    for i in prange(nx):
+        x = origin[0] + i * vs
+        for j in range(ny):
+            y = origin[1] + j * vs
+            base = (i * ny + j) * nz
+            for k in range(nz):
+                n = base + k
+                if best[n, kk - 1] <= -lim:
+                    continue  # already carved by k + 1 views: stays empty
+                z = origin[2] + k * vs
+                xc = r00 * x + r01 * y + r02 * z + t0
+                yc = r10 * x + r11 * y + r12 * z + t1
+                zc = r20 * x + r21 * y + r22 * z + t2
+                if zc <= 0.0:
+                    continue
+                xn = xc / zc
+                yn = yc / zc
+                r2 = xn * xn + yn * yn
+                rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                xd = xn * rad + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+                yd = yn * rad + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+                u = fx * xd + fs * yd + cx
+                v = fy * yd + cy
+                if not (u >= -0.5 and u <= w - 0.5 and v >= -0.5 and v <= h - 0.5):
+                    continue  # outside the image: this view does not constrain it
+                # bilinear sample, clamped to the border pixel centres
+                uu = min(max(u, 0.0), w - 1.0)
+                vv = min(max(v, 0.0), h - 1.0)
+                c0 = min(int(uu), w - 2)
+                r0 = min(int(vv), h - 2)
+                a = uu - c0
+                b = vv - r0
+                d = (1.0 - b) * ((1.0 - a) * sdf[r0, c0] + a * sdf[r0, c0 + 1]) + b * (
+                    (1.0 - a) * sdf[r0 + 1, c0] + a * sdf[r0 + 1, c0 + 1]
+                )
+                # local magnification of the projection (px per normalized unit)
+                drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+                j00 = rad + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn
+                j01 = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
+                j10 = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
+                j11 = rad + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn
+                det = abs(j00 * j11 - j01 * j10) * fxy
+                if det < 1e-12:
+                    continue
+                dmm = d * zc / math.sqrt(det)
+                if dmm > lim:
+                    dmm = lim
+                elif dmm < -lim:
+                    dmm = -lim
+                seen[n] += 1
+                # insert into the sorted row (ascending), dropping the largest
+                if dmm < best[n, kk - 1]:
+                    m = kk - 1
+                    while m > 0 and best[n, m - 1] > dmm:
+                        best[n, m] = best[n, m - 1]
+                        m -= 1
+                    best[n, m] = dmm
+
+
+def _band_px(camera, grid):
+    """Band of exact distances, px: one voxel at the grid's nearest depth, with margin.
+
+    Returns ``(band, far_field)``: ``far_field`` is True when the band had to
+    be capped at ``_MAX_BAND`` px and distances beyond it are needed.
+    """
+    lo, hi = grid.bounds
+    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+    zmin = camera.world_to_camera(corners)[:, 2].min()
+    if zmin <= grid.voxel_size:
+        return _MAX_BAND, True
+    f = math.sqrt(camera.K[0, 0] * camera.K[1, 1])
+    band = math.ceil(grid.voxel_size * f * 1.5 / zmin + 2.0)
+    return int(min(max(band, 3), _MAX_BAND)), band > _MAX_BAND
+
+
+def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1):
+    """Field sampled at voxel centres whose 0.5 level is the visual hull's surface.
+
+    The value at a voxel centre is ``0.5 + m / voxel_size`` clipped to
+    ``[-0.5, 1.5]``, where ``m`` (mm) is the smallest signed distance, over the
+    views, between the centre's viewing ray and the silhouette's outline
+    (inside positive), measured in the image with sub-pixel accuracy and
+    converted to mm at the centre's depth (see the module docstring).
+    Marching cubes at level 0.5 on this field (padded with 0) gives the hull's
+    surface between voxel centres, nearly as accurate at 2 mm as at 1 mm.
+
+    Parameters
+    ----------
+    silhouettes : sequence of (H, W) bool or float arrays
+        One per view: a bool mask (``True`` = specimen) or a float coverage
+        image in ``[0, 1]`` (the fraction of each pixel covered by the
+        specimen, e.g. an anti-aliased or soft-thresholded silhouette; the
+        outline is where coverage crosses 0.5, located sub-pixel).
+    cameras : sequence of Camera
+        The calibrated camera of each view, ``image_size == (W, H)``.
+    grid : VoxelGrid
+        The voxel space, mm, world frame.
+    tolerance : int
+        Views ignored per voxel: the ``tolerance`` most negative views of each
+        voxel do not count (robustness to a few bad silhouettes).  0 = the
+        classic visual hull.
+    min_views : int
+        Voxels constrained by fewer views (seen in fewer images, or all
+        behind the cameras) are set to -0.5 (empty).  Views that cannot see a
+        voxel (behind the camera or outside the image) never constrain it.
+        ``min_views=0`` keeps voxels that no view sees (value 1.5).
+
+    Returns
+    -------
+    field : grid.shape float32
+        In ``[-0.5, 1.5]``, axes x, y, z; > 0.5 inside the hull, 0.5 on its
+        surface, -0.5 (1.5) one voxel or more outside (inside).
+
+    Raises
+    ------
+    ValueError
+        Mismatched numbers of silhouettes and cameras, a silhouette whose
+        shape is not its camera's image size, integer images, coverage out of
+        ``[0, 1]``, or a negative ``tolerance`` / ``min_views``.
+    TypeError
+        A camera that is not a :class:`~organlab.camera.Camera` or a grid that
+        is not a :class:`~organlab.grid.VoxelGrid`.
+
+    Notes
+    -----
+    Marching cubes at level 0.5 of the field padded by any value ``< 0.5``
+    (e.g. ``np.pad(field, 1)``) gives a closed surface.
+
+    Memory: one distance image at a time plus ``(tolerance + 1) * 4 + 2``
+    bytes per voxel.  Time: about 36 views x 1.2 M voxels in a second.
+    """
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be an organlab.grid.VoxelGrid, got {type(grid).__name__}")
+    if isinstance(silhouettes, np.ndarray) and silhouettes.ndim == 2:
+        silhouettes = [silhouettes]
+    cameras = [cameras] if isinstance(cameras, Camera) else list(cameras)
+    silhouettes = list(silhouettes)
+    if len(silhouettes) != len(cameras):
+        raise ValueError(f"got {len(silhouettes)} silhouettes but {len(cameras)} cameras: give one camera per silhouette")
+    if len(cameras) == 0:
+        raise ValueError("no views: give at least one silhouette and its camera")
+    for name, value in (("tolerance", tolerance), ("min_views", min_views)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+            raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+    tolerance = int(tolerance)
+    # validate everything before computing anything
+    coverages = [_as_coverage(s, c, i) for i, (s, c) in enumerate(zip(silhouettes, cameras))]
+
+    lim = grid.voxel_size
+    n = grid.n_voxels
+    best = np.full((n, tolerance + 1), np.float32(lim), dtype=np.float32)
+    seen = np.zeros(n, dtype=np.uint16 if len(cameras) < 65535 else np.uint32)
+    origin = np.asarray(grid.origin, dtype=np.float64)
+    shape = np.asarray(grid.shape, dtype=np.int64)
+    for cov, cam in zip(coverages, cameras):
+        band, far_field = _band_px(cam, grid)
+        sdf = _signed_distance(cov, band, far_field=far_field)
+        K = cam.K
+        P = np.array([K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]])
+        extr = np.concatenate([cam.R.ravel(), cam.t, cam.dist])
+        _accumulate(sdf, P, extr, origin, float(grid.voxel_size), shape, best, seen, np.float32(lim))
+    m = best[:, tolerance].astype(np.float64)
+    field = np.clip(0.5 + m / grid.voxel_size, -0.5, 1.5)
+    if min_views > 0:
+        field[seen < min_views] = -0.5
+    return field.reshape(grid.shape).astype(np.float32)
