@@ -1,0 +1,166 @@
+"""Real photographs: the Middlebury dinoSparseRing (16 views, 640 x 480).
+
+The dino is carved from the authors' silhouettes (threshold 0.19, dilate 10,
+erode 7; the 15 images of dinoSR_good_silhouette_images.txt) with the
+thesis's bounding-box test (carve_reference) and with hull_field + marching
+cubes; each model is reprojected into every view (voxel boxes, or mesh
+triangles, filled at pixel centres) and compared with the photo's silhouette.
+
+Measured (2 mm / 1 mm voxels; ~5 px per mm in these images):
+
+==========================  ===============  ===============
+method                      mean IoU         min IoU
+==========================  ===============  ===============
+bbox test, voxel boxes      0.860 / 0.919    0.790 / 0.877
+hull_field, mesh            0.974 / 0.984    0.954 / 0.969
+==========================  ===============  ===============
+
+mismatched pixels per view (mean): bbox 18 500 / 9 850, field 3 150 / 1 900.
+Most of the field's remaining mismatch is silhouette inconsistency between
+views (parts of one silhouette that other views carve away), not the method.
+Mesh volumes: field 119.0 / 119.2 cm^3 (0.13 % apart), bbox voxels 161.7 /
+140.5 cm^3.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import organlab
+from organlab.carving import carve_reference, hull_field
+from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes, render_silhouette
+from organlab.grid import VoxelGrid
+from organlab.surface import mesh_from_volume
+
+DATA = Path(organlab.__file__).resolve().parents[2] / "shared" / "data" / "dinoSparseRing"
+needs_data = pytest.mark.skipif(not (DATA / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DATA}")
+
+
+@pytest.fixture(scope="module")
+def dino():
+    if not (DATA / "dinoSR_par.txt").is_file():
+        pytest.skip(f"dinoSparseRing not found at {DATA}")
+    data = load_middlebury(DATA)
+    masks = middlebury_silhouettes(data.images)
+    good = np.nonzero(data.good)[0]
+    return data, [masks[i] for i in good], [data.cameras[i] for i in good]
+
+
+def _iou(a, b):
+    return (a & b).sum() / (a | b).sum(), int((a ^ b).sum())
+
+
+def test_load_middlebury_cameras_in_mm(dino):
+    data, _, _ = dino
+    assert len(data.images) == len(data.cameras) == 16
+    assert data.images[0].shape == (480, 640, 3) and data.images[0].dtype == np.uint8
+    assert data.names[0] == "dinoSR0001.png"
+    assert data.good.sum() == 15 and not data.good[5]  # dinoSR0006 has no good silhouette
+    np.testing.assert_allclose(data.bbox, [[-61.897, -18.874, -57.845], [10.897, 68.227, 15.495]])
+    # the raw file's P = K [R | t] (metres) and the Camera (mm) project alike
+    line = (DATA / "dinoSR_par.txt").read_text().splitlines()[3].split()
+    K, R, t = (np.array(line[1:10], float).reshape(3, 3), np.array(line[10:19], float).reshape(3, 3), np.array(line[19:], float))
+    X = np.random.default_rng(0).uniform(data.bbox[0], data.bbox[1], (50, 3))  # mm
+    x = (K @ (R @ (X / 1000.0).T + t[:, None])).T
+    np.testing.assert_allclose(data.cameras[2].project(X), x[:, :2] / x[:, 2:], atol=0.01)
+    # the ring: camera centres 0.663 m (+- 0.024) from the origin, every view sees the box centre
+    dist = [np.linalg.norm(c.center) for c in data.cameras]
+    assert np.all(np.abs(np.subtract(dist, 663.0)) < 40.0)
+    for cam in data.cameras:
+        u, v = cam.project(data.bbox.mean(axis=0))[0]
+        assert 0 <= u < 640 and 0 <= v < 480
+        assert not cam.dist.any()
+
+
+def test_render_silhouette_of_voxels_is_the_projected_boxes():
+    """A voxel block renders as the convex hull of its projected corners (pixel centres inside)."""
+    from scipy.spatial import Delaunay
+
+    from organlab.camera import Camera
+    from organlab.surface import Mesh
+
+    R = np.array([[0.8, 0.6, 0.0], [-0.36, 0.48, -0.8], [-0.48, 0.64, 0.6]])
+    cam = Camera([[900.0, 0, 320], [0, 900, 240], [0, 0, 1]], None, R, [3.0, -2.0, 400.0], (640, 480))
+    grid = VoxelGrid.from_roi([-20, -10, -15], [20, 10, 15], 5.0)
+    occ = np.zeros(grid.shape, bool)
+    occ[1:5, 1:3, 2:5] = True  # the box [-15, 5] x [-5, 5] x [-5, 10]
+    lo, hi = np.array([-15.0, -5, -5]), np.array([5.0, 5, 10])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    v, u = np.mgrid[0:480, 0:640]
+    inside = Delaunay(cam.project(corners)).find_simplex(np.stack([u.ravel(), v.ravel()], 1)) >= 0
+    got = render_silhouette(cam, occupancy=occ, grid=grid)
+    assert got.sum() > 1000
+    np.testing.assert_array_equal(got, inside.reshape(480, 640))
+    # a mesh of the box's 12 triangles renders the same
+    idx = {tuple(c): i for i, c in enumerate(corners)}
+    faces = []
+    for axis in range(3):
+        for side in (lo[axis], hi[axis]):
+            q = [i for i, c in enumerate(corners) if c[axis] == side]  # 4 corners, order by the other axes
+            faces += [[q[0], q[1], q[3]], [q[0], q[3], q[2]]]
+    assert len(idx) == 8
+    got_mesh = render_silhouette(cam, mesh=Mesh(corners, np.array(faces)))
+    np.testing.assert_array_equal(got_mesh, got)
+
+
+def test_load_middlebury_errors(tmp_path):
+    with pytest.raises(DatasetError, match="no such folder"):
+        load_middlebury(tmp_path / "nope")
+    with pytest.raises(DatasetError, match="_par.txt"):
+        load_middlebury(tmp_path)
+    (tmp_path / "x_par.txt").write_text("1\nmissing.png " + " ".join(["1"] * 21) + "\n")
+    with pytest.raises(DatasetError, match="missing.png"):
+        load_middlebury(tmp_path)
+    (tmp_path / "x_par.txt").write_text("2\nmissing.png 1 2 3\n")
+    with pytest.raises(DatasetError, match="announces 2 images"):
+        load_middlebury(tmp_path)
+
+
+def test_silhouettes_follow_the_recipe(dino):
+    data, masks, _ = dino
+    soft = middlebury_silhouettes(data.images[:3], soft_width=0.1)
+    for m, s, im in zip(masks[:3], soft, data.images[:3]):
+        assert m.dtype == bool and s.dtype == np.float32
+        np.testing.assert_array_equal(s > 0.5, m)
+        grey = (0.299 * im[..., 0] + 0.587 * im[..., 1] + 0.114 * im[..., 2]) / 255
+        bright = grey > 0.25
+        assert m[bright].mean() > 0.999  # every clearly bright pixel is in (dilation closes shadows)
+        assert 0.2 < m.mean() < 0.7
+    # the net growth: dilate 10 / erode 7 grows a lone blob by ~3 px
+    img = np.zeros((60, 60, 3), np.uint8)
+    img[20:40, 20:40] = 200
+    (m,) = middlebury_silhouettes([img])
+    assert m[30, 17] and m[30, 42] and not m[30, 15] and not m[30, 44]
+
+
+def _compare(masks, cameras, voxel, bbox):
+    grid = VoxelGrid.from_roi(bbox[0] - 4.0, bbox[1] + 4.0, voxel)
+    occ = carve_reference(masks, cameras, grid)
+    field = hull_field(masks, cameras, grid)
+    mesh = mesh_from_volume(field, grid)
+    assert mesh.is_watertight
+    box = np.array([_iou(render_silhouette(c, occupancy=occ, grid=grid), m) for m, c in zip(masks, cameras)])
+    fld = np.array([_iou(render_silhouette(c, mesh=mesh), m) for m, c in zip(masks, cameras)])
+    return box, fld, grid.volume_of(occ), mesh.volume
+
+
+@needs_data
+@pytest.mark.slow
+def test_dino_reprojected_hull_matches_photos(dino):
+    data, masks, cams = dino
+    box2, fld2, vbox2, vfld2 = _compare(masks, cams, 2.0, data.bbox)
+    box1, fld1, vbox1, vfld1 = _compare(masks, cams, 1.0, data.bbox)
+    # every view: measured min IoU field 0.954 (2 mm), 0.969 (1 mm); bbox 0.790, 0.877
+    assert fld2[:, 0].min() > 0.94 and fld1[:, 0].min() > 0.96
+    assert box2[:, 0].min() > 0.75 and box1[:, 0].min() > 0.85
+    # the field's surface matches the photos better than the bbox test at the same voxel size,
+    # in every view, and its 2 mm model beats the bbox test's 1 mm model
+    for box, fld in ((box2, fld2), (box1, fld1)):
+        assert np.all(fld[:, 0] > box[:, 0]) and np.all(fld[:, 1] < box[:, 1])
+        assert fld[:, 0].mean() > box[:, 0].mean() + 0.04
+    assert fld2[:, 0].mean() > box1[:, 0].mean()
+    # sub-voxel surfaces: the mesh volume barely moves from 1 to 2 mm (measured 0.13 %);
+    # the conservative bbox voxels grow with the voxel (measured +15 %)
+    assert abs(vfld2 / vfld1 - 1) < 0.005
+    assert vbox2 > vbox1 > vfld1
