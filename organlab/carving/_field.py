@@ -255,19 +255,19 @@ def _signed_distance(coverage, band, *, far_field=True):
 
 # --------------------------------------------------------- voxel accumulation
 @njit(cache=True, parallel=True)
-def _accumulate(sdf, P, dist, origin, vs, shape, best, seen, lim):
+def _accumulate(sdf, P, extr, origin, vs, shape, best, seen, lim):
     """Fold one view into the per-voxel ``k + 1`` smallest distances (mm).
 
-    ``P`` = ``[fx, skew*fx, cx, fy, cy]``, ``dist`` = ``[R (9), t (3), kc (5)]``.
+    ``P`` = ``[fx, skew*fx, cx, fy, cy]``, ``extr`` = ``[R (9), t (3), kc (5)]``.
     ``best`` is ``(N, k + 1)`` float32 sorted ascending per row.
     """
     h, w = sdf.shape
     nx, ny, nz = shape[0], shape[1], shape[2]
     kk = best.shape[1]
     fx, fs, cx, fy, cy = P[0], P[1], P[2], P[3], P[4]
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = dist[0], dist[1], dist[2], dist[3], dist[4], dist[5], dist[6], dist[7], dist[8]
-    t0, t1, t2 = dist[9], dist[10], dist[11]
-    k1, k2, p1, p2, k3 = dist[12], dist[13], dist[14], dist[15], dist[16]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = extr[0], extr[1], extr[2], extr[3], extr[4], extr[5], extr[6], extr[7], extr[8]
+    t0, t1, t2 = extr[9], extr[10], extr[11]
+    k1, k2, p1, p2, k3 = extr[12], extr[13], extr[14], extr[15], extr[16]
     fxy = fx * fy
     for i in prange(nx):
         x = origin[0] + i * vs
@@ -374,7 +374,9 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1):
         Voxels constrained by fewer views (seen in fewer images, or all
         behind the cameras) are set to -0.5 (empty).  Views that cannot see a
         voxel (behind the camera or outside the image) never constrain it.
-        ``min_views=0`` keeps voxels that no view sees (value 1.5).
+        ``min_views=0`` keeps voxels that no view sees (value 1.5).  With
+        ``tolerance=k``, a voxel constrained by ``k`` views or fewer is
+        not carved (the ``k`` views it may ignore are all it has).
 
     Returns
     -------
@@ -398,7 +400,8 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1):
     (e.g. ``np.pad(field, 1)``) gives a closed surface.
 
     Memory: one distance image at a time plus ``(tolerance + 1) * 4 + 2``
-    bytes per voxel.  Time: about 36 views x 1.2 M voxels in a second.
+    bytes per voxel.  Time: about a second for 36 views of 640 x 480 px and
+    1.2 M voxels (numba, 2 cores).
     """
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be an organlab.grid.VoxelGrid, got {type(grid).__name__}")
