@@ -7,8 +7,8 @@ distortion), silhouettes of an AAA-like phantom (``organlab.synthetic``'s
 cast here through ``Camera.rays``).  Grids: 80 x 80 x 180 voxels at 1 mm
 (1.15 M voxels) and 160 x 160 x 360 at 0.5 mm (9.2 M voxels).
 
-Each method runs in its own subprocess (so its peak memory, ru_maxrss, is its
-own); times are wall-clock seconds of the carving call alone, best of
+Each method runs in its own subprocess (so its peak memory, VmHWM, is its
+own, including the interpreter, numpy and the loaded masks); times are wall-clock seconds of the carving call alone, best of
 ``--repeat`` runs after one warm-up run (numba compilation excluded).
 
 Usage::
@@ -161,6 +161,19 @@ def run_open3d(masks, cameras, grid):
 METHODS = {"numpy reference": run_reference, "organlab carve": run_organlab, "open3d carve_silhouette": run_open3d}
 
 
+def _peak_rss_mb():
+    """Peak resident memory of this process, MB (VmHWM: this program only;
+    ru_maxrss would include the parent's memory from before the exec)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def _child(method, voxel_size, scene_file, repeat, out_file):
     data = np.load(scene_file)
     from organlab.camera import Camera
@@ -171,19 +184,23 @@ def _child(method, voxel_size, scene_file, repeat, out_file):
     grid = make_grid(voxel_size)
     fn = METHODS[method]
     times = []
+    cpu = []
     occ = None
     n_runs = repeat + (1 if method == "organlab carve" else 0)  # warm-up: numba compile
     for i in range(n_runs):
         t = time.perf_counter()
+        c = time.process_time()
         occ = fn(masks, cameras, grid)
         dt = time.perf_counter() - t
+        dc = time.process_time() - c
         if method == "organlab carve" and i == 0:
             continue
         times.append(dt)
-    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        cpu.append(dc)
+    rss_mb = _peak_rss_mb()
     np.save(out_file + ".npy", occ)
     with open(out_file, "w") as f:
-        json.dump({"time_s": min(times), "times_s": times, "peak_rss_mb": rss_mb, "n_kept": int(occ.sum())}, f)
+        json.dump({"time_s": min(times), "times_s": times, "cpu_s": min(cpu), "peak_rss_mb": rss_mb, "n_kept": int(occ.sum())}, f)
 
 
 def main(argv=None):
@@ -204,6 +221,7 @@ def main(argv=None):
         have_o3d = False
     t = time.perf_counter()
     cameras, masks, source = make_scene()
+    print(f"load average before: {os.getloadavg()[0]:.2f}")
     print(f"scene: {N_VIEWS} views {cameras[0].image_size[0]}x{cameras[0].image_size[1]}, {source} "
           f"({time.perf_counter() - t:.1f} s to render); cores: {os.cpu_count()}")
     tmp = tempfile.mkdtemp(prefix="bench_carving_")
@@ -232,18 +250,21 @@ def main(argv=None):
                 r = json.load(f)
             r["occ"] = np.load(out + ".npy")
             results[(label, method)] = r
-            print(f"  {method:26s} {r['time_s']:8.3f} s   peak RSS {r['peak_rss_mb']:7.0f} MB   "
-                  f"kept {r['n_kept']} voxels")
+            r["load"] = os.getloadavg()[0]
+            print(f"  {method:26s} {r['time_s']:8.3f} s wall  {r['cpu_s']:8.3f} s CPU   peak RSS {r['peak_rss_mb']:7.0f} MB   "
+                  f"kept {r['n_kept']} voxels  (load avg {r['load']:.1f})")
         ref = results.get((label, "numpy reference"))
         fast = results.get((label, "organlab carve"))
         o3d_r = results.get((label, "open3d carve_silhouette"))
         if ref and fast:
             diff = int(np.count_nonzero(ref["occ"] != fast["occ"]))
-            print(f"  organlab vs numpy: {ref['time_s'] / fast['time_s']:.1f}x faster, "
+            print(f"  organlab vs numpy: {ref['time_s'] / fast['time_s']:.1f}x faster wall, "
+                  f"{ref['cpu_s'] / fast['cpu_s']:.1f}x less CPU, "
                   f"{diff} voxels differ (must be 0)")
         if o3d_r and fast:
             diff = int(np.count_nonzero(o3d_r["occ"] != fast["occ"]))
-            print(f"  organlab vs open3d: {o3d_r['time_s'] / fast['time_s']:.1f}x faster "
+            print(f"  organlab vs open3d: {o3d_r['time_s'] / fast['time_s']:.1f}x faster wall, "
+                  f"{o3d_r['cpu_s'] / fast['cpu_s']:.1f}x less CPU "
                   f"({diff} voxels differ: open3d has no lens distortion and tests voxel centres)")
 
 

@@ -257,26 +257,33 @@ class _Engine:
     def apply(self, mask, camera):
         nbk = self._nbk
         L = self.L
-        top_alive = self.pyr[self.off[L] : self.off[L] + np.prod(self.dims[L])]
-        tops = np.ascontiguousarray(self.tops[top_alive > 0])
-        if tops.shape[0] == 0:
-            return
-        sat = _sat(mask)
+        n_tops = self.tops.shape[0]
+        h, w = mask.shape
+        sat = nbk.sat_of(mask) if h * w < 2**31 else _sat(mask)
         cap = 1 << (3 * L)
-        if self._deferred is None or self._deferred.size < tops.shape[0] * cap:
-            self._deferred = np.empty(self.tops.shape[0] * cap, dtype=np.int64)
-        ndef = np.zeros(tops.shape[0], dtype=np.int64)
+        if self._deferred is None:
+            self._deferred = np.empty(n_tops * cap, dtype=np.int64)
+            self._ndef = np.zeros(n_tops, dtype=np.int64)
+            self._stats = np.zeros((n_tops, L + 1), dtype=np.int64)
         ax, ay, az = self.axes
         nbk.carve_view(
             nbk.camera_params(camera), sat, camera.width, camera.height, ax, ay, az, self.counts, self.pyr,
-            self.off, self.dims, L, tops, self.tol, self.min_pixels, self._deferred, ndef,
+            self.off, self.dims, L, self.tops, self.tol, self.min_pixels, self._deferred, self._ndef, self._stats,
         )
+        ndef = self._ndef
         (which,) = np.nonzero(ndef)
         if which.size:
             flat = np.concatenate([self._deferred[t * cap : t * cap + ndef[t]] for t in which])
             self.n_deferred += flat.size
             carved = _exact_carved(flat, self.grid, self.axes, sat, camera, self.min_pixels)
             nbk.kill_many(self.counts, self.pyr, self.off, self.dims, L, flat[carved], self.tol)
+
+    @property
+    def stats(self):
+        """Blocks tested per level so far (diagnostics), (L + 1,) int64."""
+        if self._deferred is None:
+            return np.zeros(self.L + 1, dtype=np.int64)
+        return self._stats.sum(axis=0)
 
     @property
     def occupancy(self):

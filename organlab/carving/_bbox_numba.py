@@ -45,6 +45,19 @@ def camera_params(camera):
     return cp
 
 
+@njit(cache=True)
+def sat_of(mask):
+    """Summed-area table (H + 1, W + 1) int32 of a bool mask (as ``_bbox._sat``)."""
+    h, w = mask.shape
+    s = np.zeros((h + 1, w + 1), dtype=np.int32)
+    for r in range(h):
+        acc = 0
+        for c in range(w):
+            acc += mask[r, c]
+            s[r + 1, c + 1] = s[r, c + 1] + acc
+    return s
+
+
 @njit(cache=True, inline="always")
 def _rect_sum(sat, c0, c1, r0, r1):
     return sat[r1 + 1, c1 + 1] - sat[r0, c1 + 1] - sat[r1 + 1, c0] + sat[r0, c0]
@@ -201,7 +214,8 @@ def _carve_box(counts, pyr, off, dims, L, x0, x1, y0, y1, z0, z1, tol):
 
 
 @njit(cache=True)
-def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol, min_pixels, deferred, nd_start, nd):
+def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol, min_pixels, deferred, nd_start, nd,
+          U, V, S):
     """Decide every alive voxel of the 2x2x2 block at (x0, y0, z0).
 
     Returns the new number of deferred voxels of the top block.
@@ -210,9 +224,7 @@ def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol,
     x1 = min(x0 + 2, nx)
     y1 = min(y0 + 2, ny)
     z1 = min(z0 + 2, nz)
-    U = np.empty((3, 3, 3))
-    V = np.empty((3, 3, 3))
-    S = np.empty((3, 3, 3), dtype=np.int8)  # 1 front, 0 near plane, -1 behind
+    # U, V, S: (3, 3, 3) scratch: projected corners, 1 front / 0 near plane / -1 behind
     k1, k2, p1, p2, k3 = cp[17], cp[18], cp[19], cp[20], cp[21]
     fx, k01, cx, fy, cy = cp[12], cp[13], cp[14], cp[15], cp[16]
     e = 0.0
@@ -311,11 +323,12 @@ def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol,
 
 
 @njit(cache=True, parallel=True)
-def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, min_pixels, deferred, ndef):
+def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, min_pixels, deferred, ndef, stats):
     """Apply one view to every alive voxel; fill ``deferred`` with undecided ones.
 
     tops : (n, 3) int64 indices of the top blocks (level L) to visit.
     deferred : per top block ``t`` the slots ``[t * 8**L, ...)``, count in ndef[t].
+    stats : (n, L + 1) int64, blocks tested per level (diagnostics).
     """
     allow_keep = min_pixels <= 1
     nx, ny, nz = counts.shape
@@ -326,6 +339,9 @@ def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, 
         if pyr[off[L] + (bx * dims[L, 1] + by) * dims[L, 2] + bz] == 0:
             continue
         stack = np.empty((8 * L + 8, 4), dtype=np.int64)
+        U = np.empty((3, 3, 3))
+        V = np.empty((3, 3, 3))
+        S = np.empty((3, 3, 3), dtype=np.int8)
         stack[0, 0] = L
         stack[0, 1] = bx
         stack[0, 2] = by
@@ -343,6 +359,7 @@ def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, 
             x1 = min(x0 + (1 << l), nx)
             y1 = min(y0 + (1 << l), ny)
             z1 = min(z0 + (1 << l), nz)
+            stats[t, l] += 1
             ok, c0, c1, r0, r1 = _block_range(cp, ax, ay, az, x0, x1, y0, y1, z0, z1)
             dec = 2
             if ok:
@@ -352,7 +369,7 @@ def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, 
             elif dec == 2:
                 if l == 1:
                     nd = _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol, min_pixels,
-                               deferred, t * cap, nd)
+                               deferred, t * cap, nd, U, V, S)
                 else:
                     for a in range(2):
                         xa = x0 + (a << (l - 1))
