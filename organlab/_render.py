@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 from .camera import Camera
@@ -72,7 +73,7 @@ def downsample(samples, size, supersample):
 # ------------------------------------------------------------------ shading
 def shade(albedo, normals, light_world):
     """Ambient + mild two-sided diffuse shading.  ``albedo (N, 3)``, ``normals (N, 3)``."""
-    lam = np.abs(normals @ light_world)
+    lam = np.abs(np.einsum("ij,j->i", normals, light_world))
     return albedo * (AMBIENT + DIFFUSE * lam)[:, None]
 
 
@@ -131,12 +132,12 @@ def board_hits(o, d, R_board, t_board, inner_corners, square, margin, *, black=2
     s = float(square)
     normal_w = R_board[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        denom = d @ normal_w
-        t = ((t_board - o) @ normal_w) / denom
+        denom = np.einsum("ij,j->i", d, normal_w)
+        t = (t_board @ normal_w - np.einsum("ij,j->i", o, normal_w)) / denom
     t = np.where(np.isfinite(t) & (t > 0), t, np.inf)
     hit = np.isfinite(t)
     p = o[hit] + t[hit, None] * d[hit]
-    local = (p - t_board) @ R_board  # R_board.T @ (p - t_board)
+    local = np.einsum("ij,jk->ik", p - t_board, R_board)  # R_board.T @ (p - t_board)
     x, y = local[:, 0], local[:, 1]
     lo_x, hi_x = -s - margin, n_x * s + margin
     lo_y, hi_y = -s - margin, n_y * s + margin
@@ -155,6 +156,86 @@ def board_hits(o, d, R_board, t_board, inner_corners, square, margin, *, black=2
     return t_out, albedo, normal
 
 
+@numba.njit(cache=True)
+def _box_hits(origin, d, lo, hi):
+    n = d.shape[0]
+    keep = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        t0 = -np.inf
+        t1 = np.inf
+        for k in range(3):
+            if d[i, k] != 0.0:
+                ta = (lo[k] - origin[k]) / d[i, k]
+                tb = (hi[k] - origin[k]) / d[i, k]
+                if ta > tb:
+                    ta, tb = tb, ta
+                t0 = max(t0, ta)
+                t1 = min(t1, tb)
+            elif origin[k] < lo[k] or origin[k] > hi[k]:
+                t1 = -np.inf
+        keep[i] = t1 >= t0 and t1 > 0
+    return keep
+
+
+def box_candidates(origin, d, lo, hi, pad=0.5):
+    """Indices of the rays from ``origin`` (3,) along ``d`` (N, 3) that meet the box ``[lo - pad, hi + pad]``."""
+    lo = np.asarray(lo, dtype=np.float64) - pad
+    hi = np.asarray(hi, dtype=np.float64) + pad
+    return np.flatnonzero(_box_hits(np.asarray(origin, dtype=np.float64), np.ascontiguousarray(d), lo, hi))
+
+
+def world_rays(camera, supersample, start, stop):
+    """World-frame unit directions of samples ``start:stop`` of ``camera``."""
+    d_cam = camera_frame_rays(camera, supersample)[start:stop]
+    return np.einsum("ij,jk->ik", d_cam, camera.R)  # R.T @ d_cam (einsum: no BLAS threads)
+
+
+_BG_CACHE = {}
+
+
+def background_layer(camera, supersample, plate):
+    """Backdrop + plate: per-sample colour ``(N, 3)`` and depth ``(N,)``.
+
+    The plate is rotationally symmetric and the backdrop and light are fixed
+    to the camera, so this layer is the same for every table angle: it is
+    cached on the intrinsics and the pose's invariants under rotations about
+    Z (``t`` and ``R @ e_z``).
+    """
+    key = (
+        camera.K.tobytes(),
+        camera.dist.tobytes(),
+        camera.image_size,
+        int(supersample),
+        bool(plate),
+        tuple(np.round(camera.t, 9)),
+        tuple(np.round(camera.R[:, 2], 12)),
+    )
+    hit = _BG_CACHE.get(key)
+    if hit is not None:
+        return hit
+    d_cam_all = camera_frame_rays(camera, supersample)
+    light_world = LIGHT_CAM @ camera.R  # R.T @ l_cam
+    centre = camera.center
+    n = d_cam_all.shape[0]
+    colour = np.empty((n, 3), dtype=np.float32)
+    depth = np.full(n, np.inf)
+    for s in range(0, n, CHUNK):
+        d_cam = d_cam_all[s : s + CHUNK]
+        c = backdrop(d_cam)
+        if plate:
+            d = world_rays(camera, supersample, s, s + CHUNK)
+            t, albedo, normal = plate_hits(np.broadcast_to(centre, d.shape), d)
+            m = np.isfinite(t)
+            c[m] = shade(albedo[m], normal[m], light_world)
+            depth[s : s + CHUNK] = t
+        colour[s : s + CHUNK] = c
+    colour.setflags(write=False)
+    depth.setflags(write=False)
+    _BG_CACHE.clear()
+    _BG_CACHE[key] = (colour, depth)
+    return colour, depth
+
+
 def render(camera, *, supersample, board=None, specimen=None, plate=True):
     """Ray-cast the scene seen by ``camera``; float64 ``(H, W, 3)`` RGB in [0, ~255].
 
@@ -162,51 +243,51 @@ def render(camera, *, supersample, board=None, specimen=None, plate=True):
     world frame of ``camera``; ``specimen`` an object with ``_intersect(o, d)``
     returning ``(t, normals)`` and ``albedo(points)``.
     """
-    d_cam_all = camera_frame_rays(camera, supersample)
-    R = camera.R
-    light_world = LIGHT_CAM @ R  # R.T @ l_cam
+    bg_colour, bg_depth = background_layer(camera, supersample, plate)
+    light_world = LIGHT_CAM @ camera.R  # R.T @ l_cam
     centre = camera.center
-    out = np.empty((d_cam_all.shape[0], 3))
-    for s in range(0, d_cam_all.shape[0], CHUNK):
-        d_cam = d_cam_all[s : s + CHUNK]
-        d = d_cam @ R
-        o = np.broadcast_to(centre, d.shape)
-        colour = backdrop(d_cam)
-        t_best = np.full(d.shape[0], np.inf)
-        layers = []
-        if plate:
-            layers.append(plate_hits(o, d))
+    out = bg_colour.astype(np.float64)
+    t_best = bg_depth.copy()
+    n = out.shape[0]
+    for s in range(0, n, CHUNK):
+        d = world_rays(camera, supersample, s, s + CHUNK)
+        colour = out[s : s + CHUNK]  # views: written in place
+        tb_chunk = t_best[s : s + CHUNK]
         if board is not None:
-            # the printed sheet lies on the plate top: it wins the tie
+            o = np.broadcast_to(centre, d.shape)
             tb, ab, nb = board_hits(o, d, *board)
-            layers.append((tb * (1.0 - 1e-9), ab, nb))
-        for t, albedo, normal in layers:
-            closer = t < t_best
+            tb = tb * (1.0 - 1e-9)  # the printed sheet lies on the plate top: it wins the tie
+            closer = tb < tb_chunk
             if np.any(closer):
-                colour[closer] = shade(albedo[closer], normal[closer], light_world)
-                t_best[closer] = t[closer]
+                colour[closer] = shade(ab[closer], nb[closer], light_world)
+                tb_chunk[closer] = tb[closer]
         if specimen is not None:
-            t, normal = specimen._intersect(o, d, t_max=t_best)
-            closer = t < t_best
-            if np.any(closer):
-                p = o[closer] + t[closer, None] * d[closer]
-                colour[closer] = shade(specimen.albedo(p), normal[closer], light_world)
-                t_best[closer] = t[closer]
-        out[s : s + CHUNK] = colour
+            idx = box_candidates(centre, d, *specimen.bounds)
+            if idx.size:
+                di = d[idx]
+                t, normal = specimen._intersect(np.broadcast_to(centre, di.shape), di, t_max=tb_chunk[idx])
+                closer = t < tb_chunk[idx]
+                if np.any(closer):
+                    p = centre + t[closer, None] * di[closer]
+                    colour[idx[closer]] = shade(specimen.albedo(p), normal[closer], light_world)
+                    tb_chunk[idx[closer]] = t[closer]
     return downsample(out, camera.image_size, supersample)
 
 
 def coverage(camera, specimen, *, supersample):
     """Fraction ``(H, W)`` float32 of each pixel's samples whose ray hits ``specimen``."""
     d_cam_all = camera_frame_rays(camera, supersample)
-    R = camera.R
     centre = camera.center
     out = np.empty((d_cam_all.shape[0], 1))
     for s in range(0, d_cam_all.shape[0], CHUNK):
-        d = d_cam_all[s : s + CHUNK] @ R
-        o = np.broadcast_to(centre, d.shape)
-        t, _ = specimen._intersect(o, d, t_max=None)
-        out[s : s + CHUNK, 0] = np.isfinite(t)
+        d = world_rays(camera, supersample, s, s + CHUNK)
+        hit = np.zeros(d.shape[0])
+        idx = box_candidates(centre, d, *specimen.bounds)
+        if idx.size:
+            di = d[idx]
+            t, _ = specimen._intersect(np.broadcast_to(centre, di.shape), di, t_max=None)
+            hit[idx] = np.isfinite(t)
+        out[s : s + CHUNK, 0] = hit
     return downsample(out, camera.image_size, supersample)[:, :, 0].astype(np.float32)
 
 
@@ -216,3 +297,168 @@ def quantize(image, noise_sigma, rng):
     if noise_sigma > 0:
         img = img + rng.normal(0.0, noise_sigma, size=img.shape)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+# ------------------------------------------------------------ star solids
+# A star solid about the Z axis: {rho <= r(phi, z), z_lo <= z <= z_hi} with
+# r(phi, z) = sum_k A_k * Z_k(z) * P_k(phi).  One row per term:
+#   [A, ztype, z1, z2, ptype, m_or_kappa, mu]
+# ztype 0: 1;  1: sin^2(pi (z - z1) / (z2 - z1)) on [z1, z2], else 0;
+#       2: (1 - (z - z1) / (z2 - z1))^2 on [z1, z2], 1 below z1, 0 above z2.
+# ptype 0: 1;  1: cos(m (phi - mu));  2: exp(kappa (cos(phi - mu) - 1)).
+
+
+@numba.njit(cache=True)
+def _star_r(phi, z, terms):
+    r = 0.0
+    r_phi = 0.0
+    r_z = 0.0
+    for k in range(terms.shape[0]):
+        A = terms[k, 0]
+        zt = terms[k, 1]
+        z1 = terms[k, 2]
+        z2 = terms[k, 3]
+        pt = terms[k, 4]
+        m = terms[k, 5]
+        mu = terms[k, 6]
+        if zt == 0.0:
+            Z = 1.0
+            dZ = 0.0
+        elif zt == 1.0:
+            if z <= z1 or z >= z2:
+                continue
+            L = z2 - z1
+            a = np.pi * (z - z1) / L
+            s = np.sin(a)
+            Z = s * s
+            dZ = 2.0 * s * np.cos(a) * np.pi / L
+        else:
+            if z >= z2:
+                continue
+            if z <= z1:
+                Z = 1.0
+                dZ = 0.0
+            else:
+                L = z2 - z1
+                q = 1.0 - (z - z1) / L
+                Z = q * q
+                dZ = -2.0 * q / L
+        if pt == 0.0:
+            P = 1.0
+            dP = 0.0
+        elif pt == 1.0:
+            P = np.cos(m * (phi - mu))
+            dP = -m * np.sin(m * (phi - mu))
+        else:
+            c = np.cos(phi - mu)
+            P = np.exp(m * (c - 1.0))
+            dP = -m * np.sin(phi - mu) * P
+        r += A * Z * P
+        r_phi += A * Z * dP
+        r_z += A * dZ * P
+    return r, r_phi, r_z
+
+
+@numba.njit(cache=True)
+def star_radius(phi, z, terms):
+    """Vectorized ``r, r_phi, r_z`` at ``(N,)`` angles (rad) and heights (mm)."""
+    n = phi.shape[0]
+    r = np.empty(n)
+    rp = np.empty(n)
+    rz = np.empty(n)
+    for i in range(n):
+        r[i], rp[i], rz[i] = _star_r(phi[i], z[i], terms)
+    return r, rp, rz
+
+
+@numba.njit(cache=True)
+def _star_f(ox, oy, oz, dx, dy, dz, t, terms):
+    x = ox + t * dx
+    y = oy + t * dy
+    z = oz + t * dz
+    r, _, _ = _star_r(np.arctan2(y, x), z, terms)
+    return np.sqrt(x * x + y * y) - r
+
+
+@numba.njit(cache=True)
+def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol):
+    """First hit of rays with a star solid.
+
+    Sphere tracing on ``f = rho - r(phi, z)`` with the Lipschitz bound
+    ``lip`` (``f / lip`` never overshoots the surface), minimum step
+    ``hmin``, then bisection to ``tol`` mm.  Returns ``t`` (inf: no hit) and
+    the kind of hit: 0 none, 1 side, 2 top cap, 3 bottom cap.
+    """
+    n = d.shape[0]
+    t_out = np.full(n, np.inf)
+    kind = np.zeros(n, dtype=np.int8)
+    for i in range(n):
+        ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
+        dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
+        # slab z_lo <= z <= z_hi
+        if abs(dz) < 1e-15:
+            if oz < z_lo or oz > z_hi:
+                continue
+            t0 = -np.inf
+            t1 = np.inf
+        else:
+            ta = (z_lo - oz) / dz
+            tb = (z_hi - oz) / dz
+            t0 = min(ta, tb)
+            t1 = max(ta, tb)
+        # bounding cylinder rho <= rmax
+        a = dx * dx + dy * dy
+        b = ox * dx + oy * dy
+        c = ox * ox + oy * oy - rmax * rmax
+        if a < 1e-15:
+            if c > 0:
+                continue
+            c0 = -np.inf
+            c1 = np.inf
+        else:
+            disc = b * b - a * c
+            if disc <= 0:
+                continue
+            sq = np.sqrt(disc)
+            c0 = (-b - sq) / a
+            c1 = (-b + sq) / a
+        tin = max(t0, c0, 0.0)
+        tend = min(t1, c1, t_max[i])
+        if tin >= tend:
+            continue
+        f = _star_f(ox, oy, oz, dx, dy, dz, tin, terms)
+        if f <= 0.0:
+            t_out[i] = tin
+            if tin == t0 and t0 > c0:
+                kind[i] = 2 if dz < 0 else 3
+            else:
+                kind[i] = 1
+            continue
+        t = tin
+        while True:
+            step = f / lip
+            if step < hmin:
+                step = hmin
+            tn = t + step
+            last = False
+            if tn >= tend:
+                tn = tend
+                last = True
+            fn = _star_f(ox, oy, oz, dx, dy, dz, tn, terms)
+            if fn <= 0.0:
+                lo = t
+                hi = tn
+                while hi - lo > tol:
+                    mid = 0.5 * (lo + hi)
+                    if _star_f(ox, oy, oz, dx, dy, dz, mid, terms) <= 0.0:
+                        hi = mid
+                    else:
+                        lo = mid
+                t_out[i] = hi
+                kind[i] = 1
+                break
+            if last:
+                break
+            t = tn
+            f = fn
+    return t_out, kind
