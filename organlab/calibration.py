@@ -1121,7 +1121,8 @@ def _draw(img, detected, reprojected, scale, lines, extra=None):
             cv2.drawMarker(out, (u // 16, v // 16), _GREEN, cv2.MARKER_CROSS, 9, 1, cv2.LINE_AA)
     y = 18
     for text in lines:
-        cv2.putText(out, text, (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+        cv2.rectangle(out, (4, y - th - 3), (12 + tw, y + base), (0, 0, 0), -1)
         cv2.putText(out, text, (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         y += 20
     return out
