@@ -109,7 +109,8 @@ def _calibrate(a):
     figs = calib.check_figures(session, result, a.figures or session.root / "calibration_check")
     cam = result["camera"]
     print(f"organlab calibrate: {session.name} -> {path}")
-    print(f"  intrinsics RMS {cam['rms_px']:.3f} px, fx {cam['K'][0][0]:.2f}, fy {cam['K'][1][1]:.2f}, "
+    rms = "given in session.json" if cam.get("rms_px") is None else f"RMS {cam['rms_px']:.3f} px"
+    print(f"  intrinsics {rms}, fx {cam['K'][0][0]:.2f}, fy {cam['K'][1][1]:.2f}, "
           f"cc ({cam['K'][0][2]:.2f}, {cam['K'][1][2]:.2f}), kc {[round(k, 5) for k in cam['dist']]}")
     if result.get("turntable"):
         print(f"  turntable RMS {result['turntable']['rms_px']:.3f} px")
