@@ -76,8 +76,10 @@ def _check_views(masks, cameras):
 
 
 def _check_tolerance(tolerance):
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, np.integer)) or tolerance < 0:
-        raise ValueError(f"tolerance must be an integer >= 0 (views allowed to carve a kept voxel), got {tolerance!r}")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, np.integer)) or not 0 <= tolerance < 65535:
+        raise ValueError(
+            f"tolerance must be an integer in [0, 65534] (views allowed to carve a kept voxel), got {tolerance!r}"
+        )
     return int(tolerance)
 
 
