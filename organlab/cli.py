@@ -38,7 +38,7 @@ def _parser():
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
     r.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
-                   help="silhouette threshold in grey levels (default: Otsu per view)")
+                   help="silhouette threshold in grey levels (default: Li's automatic threshold per view)")
     r.add_argument("--method", choices=["hull", "coloring"], default="hull",
                    help="hull: visual hull; coloring: voxel coloring on the hull (recovers concavities)")
     r.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",

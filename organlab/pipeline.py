@@ -9,7 +9,8 @@ silhouettes, carving, optional colouring, surface) and returns a
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 from pathlib import Path
 
 import numpy as np
@@ -104,7 +105,7 @@ class Reconstruction:
     field: np.ndarray | None = None
     colors: np.ndarray | None = None
     calibration: dict | None = None
-    extra: dict = field(default_factory=dict)
+    extra: dict = dc_field(default_factory=dict)
 
 
 def reconstruct(
@@ -126,7 +127,7 @@ def reconstruct(
         A loaded session or its folder.
     voxel_size : float, mm
     threshold : float, optional
-        Silhouette threshold in grey levels (Otsu's per view when omitted).
+        Silhouette threshold in grey levels (automatic per view when omitted).
     method : {'hull', 'coloring'}
         ``'coloring'`` runs Seitz & Dyer's voxel colouring on the hull.
     hull : {'subvoxel', 'thesis'}

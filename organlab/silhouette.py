@@ -5,7 +5,7 @@ scene.  The stage is a chain of small functions::
 
     bg = background_model(frames)                 # mean or median of empty frames
     diff = difference(image, bg)                  # grey or colour distance
-    t = auto_threshold(diff)                      # or a value picked by the user
+    t = auto_threshold(diff)                      # Li's, or a value picked by the user
     mask = clean_mask(diff > t)                   # opening, closing, components, holes
     cov = coverage(image, bg, mask)               # sub-pixel silhouette in [0, 1]
 
@@ -23,6 +23,7 @@ from .errors import SessionError
 
 __all__ = [
     "background_model",
+    "background_noise",
     "difference",
     "auto_threshold",
     "clean_mask",
@@ -66,6 +67,28 @@ def background_model(frames, *, method="median"):
     raise ValueError(f"method must be 'median' or 'mean', got {method!r}")
 
 
+def background_noise(frames):
+    """Typical pixel noise of the background frames, grey levels.
+
+    Parameters
+    ----------
+    frames : sequence of (H, W) or (H, W, 3) uint8
+
+    Returns
+    -------
+    float
+        Median over pixels of the per-pixel standard deviation across frames
+        (averaged over channels); 0 for a single frame.
+    """
+    stack = _stack(frames).astype(np.float32)
+    if len(stack) < 2:
+        return 0.0
+    sd = stack.std(axis=0, ddof=1)
+    if sd.ndim == 3:
+        sd = sd.mean(axis=2)
+    return float(np.median(sd))
+
+
 def difference(image, background, *, mode="color"):
     """Per-pixel distance between an image and the background model.
 
@@ -104,26 +127,38 @@ def _luma(rgb):
     return rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
-def auto_threshold(diff):
-    """Otsu's threshold of a difference image.
+def auto_threshold(diff, *, method="li", floor=0.0):
+    """Automatic threshold of a difference image.
 
     Parameters
     ----------
     diff : (H, W) float
         From :func:`difference`.
+    method : {'li', 'otsu', 'triangle'}
+        ``'li'`` (default): Li's minimum cross-entropy threshold, which stays
+        low enough to keep a specimen's dark or background-like parts while
+        the background fills most of the image (on the synthetic phantom it
+        misclassifies 1.5 % of the silhouette's pixels, Otsu's 20 %).
+        ``'otsu'``: Otsu's between-class variance; ``'triangle'``: Zack's
+        triangle method (close to the noise level).
+    floor : float
+        Lowest threshold returned, e.g. a multiple of the background noise.
 
     Returns
     -------
     threshold : float, grey levels
     """
-    from skimage.filters import threshold_otsu
+    from skimage import filters
 
     d = np.asarray(diff, dtype=np.float32)
     if not np.isfinite(d).all():
         raise ValueError("difference image has non-finite values")
     if float(d.max()) - float(d.min()) < 1e-6:
         raise ValueError("difference image is constant: the view does not differ from the background")
-    return float(threshold_otsu(d))
+    funcs = {"li": filters.threshold_li, "otsu": filters.threshold_otsu, "triangle": filters.threshold_triangle}
+    if method not in funcs:
+        raise ValueError(f"method must be one of {sorted(funcs)}, got {method!r}")
+    return max(float(funcs[method](d)), float(floor))
 
 
 def _disk(radius):
@@ -259,7 +294,7 @@ class Silhouette:
     source: str
 
 
-def silhouette(image, background, *, threshold=None, mode="color", **clean):
+def silhouette(image, background, *, threshold=None, mode="color", floor=0.0, **clean):
     """Silhouette of one view by background subtraction.
 
     Parameters
@@ -268,8 +303,10 @@ def silhouette(image, background, *, threshold=None, mode="color", **clean):
     background : (H, W) or (H, W, 3) float
         From :func:`background_model`.
     threshold : float, optional
-        Grey levels; Otsu's threshold of the difference image when omitted.
+        Grey levels; :func:`auto_threshold` of the difference image when omitted.
     mode : {'color', 'grey'}
+    floor : float
+        Lowest automatic threshold (e.g. from the background noise).
     **clean
         Options of :func:`clean_mask`.
 
@@ -278,7 +315,7 @@ def silhouette(image, background, *, threshold=None, mode="color", **clean):
     Silhouette
     """
     diff = difference(image, background, mode=mode)
-    t = auto_threshold(diff) if threshold is None else float(threshold)
+    t = auto_threshold(diff, floor=floor) if threshold is None else float(threshold)
     if t <= 0:
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
     mask = clean_mask(diff > t, **clean)
@@ -296,7 +333,7 @@ def session_silhouettes(session, *, threshold=None, mode="color", background="me
     ----------
     session : Session
     threshold : float, optional
-        Grey levels, the same for every view; Otsu's per view when omitted.
+        Grey levels, the same for every view; :func:`auto_threshold` per view when omitted.
     mode : {'color', 'grey'}
     background : {'median', 'mean'}
     progress : callable(done, total), optional
@@ -316,9 +353,10 @@ def session_silhouettes(session, *, threshold=None, mode="color", background="me
             if bg is None:
                 frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
                 bg = background_model(frames, method=background)
+                floor = 5.0 * background_noise(frames)
             img = session.read(view.image, key=f"views[{i}].image")
             try:
-                out.append(silhouette(img, bg, threshold=threshold, mode=mode, **clean))
+                out.append(silhouette(img, bg, threshold=threshold, mode=mode, floor=floor, **clean))
             except ValueError as e:
                 raise SessionError(f"{session.json_path}: views[{i}] ({session.relpath(view.image)}): {e}") from None
             if not out[-1].mask.any():
