@@ -1,0 +1,140 @@
+"""End to end: a rendered session through the pipeline and the CLI."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from organlab import load_session
+from organlab.cli import main
+from organlab.errors import SessionError
+from organlab.pipeline import reconstruct, session_cameras, write_outputs
+from organlab.surface import read_ply
+from organlab.synthetic import make_session
+
+SPEC_REPORT_KEYS = {"volume_mm3", "mesh_volume_mm3", "mesh_area_mm2", "watertight", "voxel_size_mm", "timings_s", "views", "camera"}
+
+
+@pytest.fixture(scope="module")
+def posed(tmp_path_factory):
+    """Small session with the true camera and poses given (no calibration needed)."""
+    root = tmp_path_factory.mktemp("posed") / "s"
+    truth = make_session(root, image_size=(320, 240), n_views=12, n_background=5, views_only=True, seed=3)
+    return root, truth
+
+
+@pytest.fixture(scope="module")
+def posed_result(posed):
+    return reconstruct(posed[0], voxel_size=2.0)
+
+
+def test_report_follows_the_spec(posed, posed_result, tmp_path):
+    root, truth = posed
+    paths = write_outputs(posed_result, tmp_path / "out")
+    report = json.loads(paths["report"].read_text())
+    assert SPEC_REPORT_KEYS <= report.keys()
+    assert set(report["timings_s"]) == {"silhouettes", "carving", "surface"}
+    assert report["watertight"] is True and report["voxel_size_mm"] == 2.0
+    assert len(report["views"]) == 12 and {"angle_deg", "R", "t"} <= report["views"][0].keys()
+    np.testing.assert_allclose(report["camera"]["K"], truth["camera"]["K"])
+    assert "rms_px" not in report["camera"]  # given, not calibrated
+    with np.load(paths["voxels"], allow_pickle=False) as z:
+        assert z["occupancy"].dtype == bool and z["occupancy"].shape == posed_result.grid.shape
+        np.testing.assert_allclose(z["origin_mm"], [-69, -69, 1])  # roi min + half a voxel
+        assert float(z["voxel_size_mm"]) == 2.0
+        assert z["occupancy"].sum() * 8.0 == pytest.approx(report["volume_mm3"])
+    mesh = read_ply(paths["ply"])
+    assert mesh.is_watertight
+    assert mesh.volume == pytest.approx(report["mesh_volume_mm3"], rel=1e-4)
+    assert paths["stl"].stat().st_size == 84 + 50 * len(mesh.faces)
+
+
+def test_volume_against_the_phantom(posed, posed_result):
+    _, truth = posed
+    true_volume = truth["volume_mm3"]
+    # 12 views of 320x240 at 2 mm voxels: the sub-voxel surface is within 1.5 % of the truth
+    assert posed_result.mesh.volume == pytest.approx(true_volume, rel=0.015)
+    assert posed_result.report["mesh_volume_error_pct"] == pytest.approx(
+        100 * (posed_result.mesh.volume - true_volume) / true_volume)
+    # the model stands on z = 0 in the world frame, upright
+    lo, hi = posed_result.mesh.bounds
+    assert abs(lo[2] - 0.0) < 2.0 and hi[2] > 140
+
+
+def test_thesis_hull_contains_the_subvoxel_hull(posed, posed_result):
+    thesis = reconstruct(posed[0], voxel_size=2.0, hull="thesis")
+    assert np.all(thesis.occupancy[posed_result.occupancy])
+    # the 8-corner box test inflates the thin phantom by more than 10 %
+    assert thesis.report["volume_mm3"] > 1.10 * posed_result.report["volume_mm3"]
+
+
+def test_views_poses_are_the_given_ones(posed, posed_result):
+    s = load_session(posed[0])
+    for v, cam in zip(s.views, posed_result.cameras):
+        np.testing.assert_allclose(cam.R, v.pose[0])
+        np.testing.assert_allclose(cam.t, v.pose[1])
+
+
+def test_cli_reconstruct_and_errors(posed, tmp_path, capsys):
+    root, _ = posed
+    out = tmp_path / "cli"
+    assert main(["reconstruct", str(root), "--out", str(out), "--voxel-size", "4", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "mesh volume" in printed and "vs reference" in printed
+    assert {p.name for p in out.iterdir()} == {"report.json", "voxels.npz", "mesh.ply", "mesh.stl"}
+
+    bad = tmp_path / "bad"
+    shutil.copytree(root, bad)
+    (bad / "views/090.png").write_bytes(b"not a png")
+    assert main(["reconstruct", str(bad), "--out", str(tmp_path / "o2"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("organlab: error: ") and "views[3].image" in err and "cannot be read" in err
+    assert "Traceback" not in err and err.count("\n") == 1
+    assert not (tmp_path / "o2").exists()
+
+    with pytest.raises(SystemExit) as e:
+        main(["reconstruct", str(root), "--out", str(out), "--voxel-size", "-1"])
+    assert e.value.code == 2
+
+
+@pytest.mark.slow
+def test_calibrates_when_no_camera_is_given(tmp_path):
+    """No camera, no poses: reconstruct calibrates from the board images first."""
+    root = tmp_path / "s"
+    truth = make_session(root, image_size=(640, 480), n_views=8, n_intrinsic=10, n_turntable=6,
+                         n_background=4, include_camera=False, include_poses=False, seed=5)
+    rec = reconstruct(root, voxel_size=4.0)
+    assert (root / "calibration.json").is_file()
+    assert "calibration" in rec.report["timings_s"] and rec.report["camera"]["rms_px"] < 0.3
+    true_centres = [np.asarray(v["center_mm"]) if "center_mm" in v else -np.asarray(v["R"]).T @ np.asarray(v["t"])
+                    for v in truth["views"]]
+    for cam, c in zip(rec.cameras, true_centres):
+        assert np.linalg.norm(cam.center - c) < 2.0
+    # a second run reuses calibration.json
+    again = reconstruct(root, voxel_size=4.0)
+    assert "calibration" not in again.report["timings_s"]
+    np.testing.assert_allclose(again.cameras[0].K, rec.cameras[0].K)
+
+
+def test_session_cameras_from_turntable(posed, tmp_path):
+    s = load_session(posed[0])
+    cams = session_cameras(s)
+    R_cam, t_cam = cams[0].R, cams[0].t  # view 0 is at angle 0
+    # the same session without camera and poses, with a calibration.json holding the truth
+    root = tmp_path / "noposes"
+    shutil.copytree(posed[0], root)
+    raw = json.loads((root / "session.json").read_text())
+    for v in raw["views"]:
+        v.pop("pose")
+    raw.pop("camera")
+    (root / "session.json").write_text(json.dumps(raw))
+    with pytest.raises(SessionError, match="camera: no intrinsics"):
+        load_session(root)  # neither pose nor turntable calibration
+    calib = {"camera": {"K": cams[0].K.tolist(), "dist": cams[0].dist.tolist(), "rms_px": 0.1},
+             "turntable": {"R_cam": R_cam.tolist(), "t_cam": t_cam.tolist(), "rms_px": 0.1}}
+    (root / "calibration.json").write_text(json.dumps(calib))
+    s2 = load_session(root)
+    for a, b in zip(session_cameras(s2), cams):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-9)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-9)
