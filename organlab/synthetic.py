@@ -206,12 +206,12 @@ def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, margin=BOARD_MARGI
     """Board poses in front of the camera for intrinsic calibration images.
 
     Random but deterministic from ``seed``: tilts up to ``max_tilt_deg``,
-    in-plane rotations up to 25 deg, the sheet filling between about 1/5 and
-    1/2 of the image area, every third pose pushed toward an image corner
-    where the distortion is strong.  Every pose keeps the whole sheet
-    (margin included) inside the image, every inner corner at least 12 px
-    from the border, and the sheet's normal within 55 deg of the line of
-    sight.
+    in-plane rotations up to 25 deg, the squares covering 16-45 % of the
+    image (the sheet about 1/4 to 2/3), every other pose pushed toward an
+    image corner (cycling through the four) where the distortion is strong.
+    Every pose keeps all the squares inside the image (the white margin may
+    be cut by the image border) and the sheet's normal within 55 deg of the
+    line of sight.
 
     Parameters
     ----------
@@ -232,7 +232,7 @@ def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, margin=BOARD_MARGI
     w, h = cam0.image_size
     rng = np.random.default_rng([int(seed), 7919])
     corners = board_object_points(p)
-    outline = board_outline(p, margin=margin)
+    squares = board_outline(p, margin=0.0)
     centre = _board_center(p)
     R_face = np.diag([1.0, -1.0, -1.0])  # printed side toward the camera, board +x to the right
     poses = []
@@ -247,26 +247,26 @@ def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, margin=BOARD_MARGI
         axis_angle = rng.uniform(0, 2 * np.pi)
         axis = np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0])
         R = _axis_angle(axis, tilt) @ R_face @ _axis_angle([0, 0, 1.0], roll)
-        if k % 3 == 2:
-            qx, qy = rng.choice([-1, 1]), rng.choice([-1, 1])
-            target = np.array([w / 2 + qx * w * rng.uniform(0.12, 0.22), h / 2 + qy * h * rng.uniform(0.12, 0.22)])
+        if k % 2 == 1:  # toward an image corner (strong distortion), cycling through the four
+            qx, qy = ((1, 1), (-1, 1), (-1, -1), (1, -1))[(k // 2) % 4]
+            target = np.array([w / 2 + qx * w * rng.uniform(0.2, 0.3), h / 2 + qy * h * rng.uniform(0.2, 0.3)])
         else:
-            target = np.array([w / 2 + w * rng.uniform(-0.1, 0.1), h / 2 + h * rng.uniform(-0.1, 0.1)])
+            target = np.array([w / 2 + w * rng.uniform(-0.12, 0.12), h / 2 + h * rng.uniform(-0.12, 0.12)])
         dist = rng.uniform(380, 680) * (cam0.K[0, 0] / 812.4) / (w / 640.0)
         ray = cam0.rays(target[None])[1][0]
         t = dist * ray - R @ centre
         cam_pts = corners @ R.T + t
-        out_pts = outline @ R.T + t
+        out_pts = squares @ R.T + t
         if np.any(cam_pts[:, 2] <= 50) or np.any(out_pts[:, 2] <= 50):
             continue
         uv = cam0.project(cam_pts)
         uvo = cam0.project(out_pts)
-        if not (np.all(uv[:, 0] >= 12) and np.all(uv[:, 0] <= w - 13) and np.all(uv[:, 1] >= 12) and np.all(uv[:, 1] <= h - 13)):
+        # every square inside the image (the white margin may be cut by the border)
+        if not (np.all(uvo[:, 0] >= 2) and np.all(uvo[:, 0] <= w - 3) and np.all(uvo[:, 1] >= 2) and np.all(uvo[:, 1] <= h - 3)):
             continue
-        if not (np.all(uvo[:, 0] >= 1) and np.all(uvo[:, 0] <= w - 2) and np.all(uvo[:, 1] >= 1) and np.all(uvo[:, 1] <= h - 2)):
-            continue
+        # squares cover 16-45 % of the image (the sheet about 1/4 to 2/3)
         area = 0.5 * abs(np.dot(uvo[:, 0], np.roll(uvo[:, 1], 1)) - np.dot(uvo[:, 1], np.roll(uvo[:, 0], 1)))
-        if not 0.2 <= area / (w * h) <= 0.5:
+        if not 0.16 <= area / (w * h) <= 0.45:
             continue
         normal = R[:, 2]
         c = R @ centre + t
@@ -1025,6 +1025,7 @@ def make_session(
         "noise_sigma": float(noise_sigma),
         "supersample": int(supersample),
         "board_supersample": int(board_supersample),
+        "formats": {"views": view_format, "background": background_format, "jpeg_quality": int(jpeg_quality), "calibration": "png (grey)"},
     }
     write_json(out / "session.json", session)
     write_json(out / "truth.json", truth)
@@ -1045,7 +1046,10 @@ def main(argv=None):
     ap.add_argument("--small", action="store_true", help="320x240, 12 views, few calibration images (fast)")
     ap.add_argument("--noise", type=float, default=None, help="pixel noise sigma, grey levels")
     ap.add_argument(
-        "--png-backgrounds", action="store_true", help="write background frames as PNG (default: JPEG quality 95, to keep the folder small)"
+        "--png",
+        action="store_true",
+        help="write views and background frames as PNG (default for full-size sessions: JPEG quality 98, 4:4:4, "
+        "to keep the folder under 15 MB; calibration images are always grey PNG)",
     )
     ap.add_argument("--no-camera", action="store_true", help="do not put the true intrinsics in session.json")
     ap.add_argument("--no-poses", action="store_true", help="do not put the true view poses in session.json")
@@ -1058,8 +1062,8 @@ def main(argv=None):
         kw["noise_sigma"] = args.noise
     elif not args.small:
         kw["noise_sigma"] = 1.0
-    if not args.png_backgrounds:
-        kw["background_format"] = "jpg"
+    if not args.png and not args.small:
+        kw.update(view_format="jpg", background_format="jpg", jpeg_quality=98)
     t0 = time.perf_counter()
     truth = make_session(
         args.out, seed=args.seed, specimen=args.specimen, include_camera=not args.no_camera, include_poses=not args.no_poses, **kw
