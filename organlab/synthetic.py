@@ -556,9 +556,15 @@ class Cylinder(Specimen):
 class _StarSolid:
     """{rho <= r(phi, z), z_lo <= z <= z_hi} with r a sum of separable terms (see ``_render``)."""
 
+    _cache = {}
+
     def __init__(self, terms, z_lo, z_hi):
         self.terms = np.ascontiguousarray(terms, dtype=np.float64)
         self.z_lo, self.z_hi = float(z_lo), float(z_hi)
+        key = (self.terms.tobytes(), self.z_lo, self.z_hi)
+        if key in self._cache:
+            self.r_min, self.r_max, self.lip, self.volume = self._cache[key]
+            return
         phi = np.linspace(0, 2 * np.pi, 1441)
         z = np.linspace(self.z_lo - 5, self.z_hi + 5, 601)
         P, Z = np.meshgrid(phi, z)
@@ -570,6 +576,7 @@ class _StarSolid:
         # Lipschitz bound of f = rho - r(phi, z) where rho >= r_min (with a safety factor)
         self.lip = 1.25 * float(np.sqrt(1.0 + (np.abs(rp).max() / self.r_min) ** 2 + np.abs(rz).max() ** 2))
         self.volume = self._volume()
+        self._cache[key] = (self.r_min, self.r_max, self.lip, self.volume)
 
     def radius(self, phi, z):
         phi, z = np.broadcast_arrays(np.asarray(phi, float), np.asarray(z, float))

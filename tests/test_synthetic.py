@@ -348,3 +348,30 @@ def test_session_options_are_checked(tmp_path):
         syn.make_session(tmp_path / "x", n_views=-1)
     with pytest.raises(ValueError, match="view_format"):
         syn.make_session(tmp_path / "x", view_format="bmp", n_views=0, n_intrinsic=0, n_turntable=0, n_background=0)
+
+
+def test_committed_sample_session_is_valid_and_small():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+    if not (root / "session.json").is_file():
+        pytest.skip("sample session not generated (make sample)")
+    s = organlab.load_session(root)  # opens every image
+    truth = json.loads((root / "truth.json").read_text())
+    assert len(s.views) == 36 and len(s.intrinsic_images) == 15 and len(s.turntable_images) == 10
+    assert len(s.background_images) == 20
+    assert s.reference["volume_mm3"] == pytest.approx(syn.AAAPhantom().volume, rel=1e-12)
+    assert truth["volume_mm3"] == s.reference["volume_mm3"]
+    assert np.allclose(truth["camera"]["K"], syn.default_camera().K)
+    assert np.allclose(s.views[5].pose[0], syn.default_camera().at_table_angle(50).R)
+    size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+    assert size < 15e6
+
+
+@pytest.mark.slow
+def test_every_intrinsic_board_is_detected(cam):
+    cam0 = cam.with_pose(np.eye(3), np.zeros(3))
+    for k, (R, t) in enumerate(syn.intrinsic_board_poses(cam, 15, seed=0)):
+        img = syn.render_board(cam0, R, t, supersample=2, table=False, noise_sigma=1.0, seed=k)
+        uv = cam0.project(syn.board_object_points() @ R.T + t)
+        assert _rms_to(_detect(img), uv) < 0.12, k
