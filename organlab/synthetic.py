@@ -202,7 +202,7 @@ def turntable_board_points(angle_deg, pattern=None, *, center_xy=BOARD_CENTER_XY
     return X @ rot_z(angle_deg).T
 
 
-def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, margin=BOARD_MARGIN, max_tilt_deg=45.0):
+def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, max_tilt_deg=45.0):
     """Board poses in front of the camera for intrinsic calibration images.
 
     Random but deterministic from ``seed``: tilts up to ``max_tilt_deg``,
@@ -219,6 +219,10 @@ def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, margin=BOARD_MARGI
         Only the intrinsics are used.
     n : int
         Number of poses.
+    pattern : Pattern or ((cols, rows), square_size), optional
+    seed : int
+    max_tilt_deg : float
+        Largest angle between the sheet and the image plane.
 
     Returns
     -------
