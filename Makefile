@@ -28,7 +28,7 @@ bench: $(STAMP)
 
 # Regenerate the bundled sample session (deterministic from its seed).
 sample: $(STAMP)
-	$(BIN)/python -m organlab.synthetic sample_sessions/aaa_phantom --seed 0
+	$(BIN)/python -m organlab.synthetic sample_sessions/aaa_phantom --seed 0 --no-camera --no-poses
 
 clean:
 	rm -rf $(VENV) demo_out
