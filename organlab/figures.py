@@ -52,11 +52,11 @@ def mesh_snapshot(mesh, path, *, window_size=(800, 600), title=None, elevation_d
         p.add_text(title, position="upper_left", font_size=10, color="black")
     lo, hi = mesh.bounds
     center = (lo + hi) / 2
-    dist = 2.6 * float(np.linalg.norm(hi - lo))
+    # far enough that the bounding sphere fits in pyvista's 30-degree vertical view angle
+    dist = 1.15 * float(np.linalg.norm(hi - lo)) / 2 / np.tan(np.deg2rad(15.0))
     el, az = np.deg2rad(elevation_deg), np.deg2rad(azimuth_deg)
     eye = center + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     p.camera_position = [tuple(eye), tuple(center), (0, 0, 1)]
-    p.camera.zoom(1.6)
     path = Path(path)
     p.screenshot(str(path))
     p.close()
