@@ -1,0 +1,112 @@
+"""Benchmark of voxel colouring on the bundled sample session.
+
+``sample_sessions/aaa_phantom`` (36 views, 640 x 480 px, JPEG): cameras from
+the session's ``calibration.json`` (intrinsics and turntable pose, as
+``organlab calibrate`` wrote them), silhouettes by background subtraction
+(:func:`organlab.silhouette.session_silhouettes`), visual hull by
+:func:`organlab.carving.carve` at 1 mm, then
+:func:`organlab.coloring.color_voxels` with its defaults.
+
+Printed: wall-clock seconds of the colouring call (best of ``--repeat`` runs
+after one warm-up run, so numba's compilation or cache loading is
+excluded), the process's peak resident memory before and after colouring
+(VmHWM, so the difference is what colouring adds on top of the loaded
+images, masks and hull), and the volumes of the hull and of the coloured
+solid against the session's reference volume.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_coloring.py [--session sample_sessions/aaa_phantom]
+        [--voxel-size 1] [--repeat 3] [--method voxel_coloring]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _vm(key):
+    """A ``/proc/self/status`` memory figure in MB (VmHWM: peak resident, VmRSS: now)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _cameras(session):
+    from organlab.camera import Camera
+
+    cal = session.calibration
+    if cal and "camera" in cal and "turntable" in cal:
+        c = cal["camera"]
+        base = Camera(c["K"], c["dist"], cal["turntable"]["R_cam"], cal["turntable"]["t_cam"], session.image_size)
+        return [base.at_table_angle(v.angle_deg) for v in session.views], "calibration.json"
+    if session.camera is not None and all(v.pose is not None for v in session.views):
+        cam = session.given_camera()
+        return [cam.with_pose(*v.pose) for v in session.views], "session.json poses"
+    raise SystemExit(f"{session.root}: no calibration.json with a turntable and no per-view poses; run 'organlab calibrate' first")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--session", default=str(ROOT / "sample_sessions" / "aaa_phantom"))
+    ap.add_argument("--voxel-size", type=float, default=1.0)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--method", default="voxel_coloring", choices=["voxel_coloring", "space_carving"])
+    a = ap.parse_args()
+
+    from organlab import carving, coloring
+    from organlab.grid import VoxelGrid
+    from organlab.session import load_session
+    from organlab.silhouette import session_silhouettes
+
+    session = load_session(a.session)
+    cameras, source = _cameras(session)
+    images = [session.read(v.image, key=f"views[{i}].image") for i, v in enumerate(session.views)]
+    t0 = time.perf_counter()
+    masks = [s.mask for s in session_silhouettes(session)]
+    t_sil = time.perf_counter() - t0
+    grid = VoxelGrid.from_roi(session.roi_min, session.roi_max, a.voxel_size)
+    t0 = time.perf_counter()
+    hull = carving.carve(masks, cameras, grid)
+    t_hull = time.perf_counter() - t0
+
+    threads = os.environ.get("NUMBA_NUM_THREADS") or str(os.cpu_count())
+    print(f"session   {session.root.name}: {len(images)} views, {session.image_size[0]} x {session.image_size[1]} px, cameras from {source}")
+    print(f"grid      {grid.shape} at {grid.voxel_size:g} mm ({grid.n_voxels / 1e6:.2f} M voxels); numba threads {threads}")
+    print(f"inputs    silhouettes {t_sil:.2f} s, hull (carve) {t_hull:.2f} s, {int(hull.sum())} hull voxels")
+
+    hwm_before = _vm("VmHWM")
+    res = coloring.color_voxels(images, cameras, hull, grid, masks=masks, method=a.method)  # warm-up
+    times = []
+    for _ in range(max(1, a.repeat)):
+        t0 = time.perf_counter()
+        res = coloring.color_voxels(images, cameras, hull, grid, masks=masks, method=a.method)
+        times.append(time.perf_counter() - t0)
+    hwm_after = _vm("VmHWM")
+
+    ref = session.reference.get("volume_mm3")
+    v_hull = grid.volume_of(hull)
+    v_col = grid.volume_of(res.occupancy)
+    print(f"coloring  {a.method}: best {min(times):.2f} s, median {np.median(times):.2f} s of {len(times)} runs")
+    print(f"memory    peak RSS {hwm_before:.0f} MB before colouring, {hwm_after:.0f} MB after (+{hwm_after - hwm_before:.0f} MB)")
+    print(
+        f"result    {res.n_candidates} candidates, {res.n_carved} carved ({res.n_carved_background} seen through "
+        f"to the background), {res.n_visible} coloured, {res.n_hidden} hidden interior"
+    )
+    line = f"volumes   hull {v_hull / 1e3:.1f} cm^3, coloured {v_col / 1e3:.1f} cm^3"
+    if ref:
+        line += f", reference {ref / 1e3:.1f} cm^3 (hull {100 * (v_hull / ref - 1):+.2f} %, coloured {100 * (v_col / ref - 1):+.2f} %)"
+    print(line)
+
+
+if __name__ == "__main__":
+    main()
