@@ -195,9 +195,9 @@ def reconstruct(
     if hull == "thesis":
         occupancy = carving.carve([s.mask for s in sils], cameras, grid, tolerance=tolerance)
     else:
-        field_ = carving.hull_field([s.coverage for s in sils], cameras, grid, tolerance=tolerance)
+        field_ = carving.hull_field([s.coverage for s in sils], cameras, grid, tolerance=tolerance, progress=bar)
         occupancy = field_ >= 0.5
-    bar(1, 1)
+    bar(len(cameras), len(cameras))
     timings["carving"] = time.perf_counter() - t0
     bar.close()
     if not occupancy.any():

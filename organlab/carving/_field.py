@@ -344,7 +344,7 @@ def _band_px(camera, grid):
     return int(min(max(band, 3), _MAX_BAND)), band > _MAX_BAND
 
 
-def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1):
+def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress=None):
     """Field sampled at voxel centres whose 0.5 level is the visual hull's surface.
 
     The value at a voxel centre is ``0.5 + m / voxel_size`` clipped to
@@ -377,6 +377,8 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1):
         ``min_views=0`` keeps voxels that no view sees (value 1.5).  With
         ``tolerance=k``, a voxel constrained by ``k`` views or fewer is
         not carved (the ``k`` views it may ignore are all it has).
+    progress : callable(done, total), optional
+        Called after each view.
 
     Returns
     -------
@@ -426,13 +428,15 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1):
     seen = np.zeros(n, dtype=np.uint16 if len(cameras) < 65535 else np.uint32)
     origin = np.asarray(grid.origin, dtype=np.float64)
     shape = np.asarray(grid.shape, dtype=np.int64)
-    for cov, cam in zip(coverages, cameras):
+    for i, (cov, cam) in enumerate(zip(coverages, cameras)):
         band, far_field = _band_px(cam, grid)
         sdf = _signed_distance(cov, band, far_field=far_field)
         K = cam.K
         P = np.array([K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]])
         extr = np.concatenate([cam.R.ravel(), cam.t, cam.dist])
         _accumulate(sdf, P, extr, origin, float(grid.voxel_size), shape, best, seen, np.float32(lim))
+        if progress is not None:
+            progress(i + 1, len(cameras))
     m = best[:, tolerance].astype(np.float64)
     field = np.clip(0.5 + m / grid.voxel_size, -0.5, 1.5)
     if min_views > 0:
