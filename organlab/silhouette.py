@@ -257,20 +257,27 @@ def coverage(image, background, mask, *, window=5):
     inner = cv2.erode(m8, k, borderType=cv2.BORDER_REPLICATE)
     outer = cv2.dilate(m8, k).astype(bool)
     band = outer & ~inner.astype(bool)
+    cov = inner.astype(np.float32)
+    rows, cols = np.nonzero(band)
+    if rows.size == 0:
+        return cov
     w = (int(window), int(window))
-    weight = cv2.boxFilter(inner.astype(np.float32), -1, w, normalize=False)
-    fg = np.stack([cv2.boxFilter(img[..., c] * inner, -1, w, normalize=False) for c in range(img.shape[2])], axis=-1)
+    weight = cv2.boxFilter(inner.astype(np.float32), -1, w, normalize=False)[rows, cols]
+    fg = np.stack(
+        [cv2.boxFilter(img[..., c] * inner, -1, w, normalize=False)[rows, cols] for c in range(img.shape[2])], axis=-1
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
-        fg = fg / weight[..., None]
-    d_img = img - bg
-    d_fg = fg - bg
+        fg = fg / weight[:, None]
+    b = bg[rows, cols]
+    d_img = img[rows, cols] - b
+    d_fg = fg - b
     den = (d_fg * d_fg).sum(axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         a = (d_img * d_fg).sum(axis=-1) / den
     # edge pixels with no inside neighbour in the window (or no contrast) keep the binary mask
-    a = np.where((weight > 0) & (den > 1.0), np.clip(a, 0.0, 1.0), m8.astype(np.float32))
-    cov = np.where(band, a, inner.astype(np.float32))
-    return cov.astype(np.float32)
+    ok = (weight > 0) & (den > 1.0)
+    cov[rows, cols] = np.where(ok, np.clip(a, 0.0, 1.0), m8[rows, cols].astype(np.float32))
+    return cov
 
 
 @dataclass(frozen=True)
