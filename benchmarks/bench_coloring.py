@@ -7,7 +7,7 @@ the session's ``calibration.json`` (intrinsics and turntable pose, as
 :func:`organlab.carving.carve` at 1 mm, then
 :func:`organlab.coloring.color_voxels` with its defaults.
 
-Printed: wall-clock seconds of the colouring call (best of ``--repeat`` runs
+Printed: wall-clock and CPU seconds of the colouring call (best of ``--repeat`` runs
 after one warm-up run, so numba's compilation or cache loading is
 excluded), the process's peak resident memory before and after colouring
 (VmHWM, so the difference is what colouring adds on top of the loaded
@@ -86,17 +86,21 @@ def main():
 
     hwm_before = _vm("VmHWM")
     res = coloring.color_voxels(images, cameras, hull, grid, masks=masks, method=a.method)  # warm-up
-    times = []
+    times, cpu = [], []
     for _ in range(max(1, a.repeat)):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         res = coloring.color_voxels(images, cameras, hull, grid, masks=masks, method=a.method)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     hwm_after = _vm("VmHWM")
 
     ref = session.reference.get("volume_mm3")
     v_hull = grid.volume_of(hull)
     v_col = grid.volume_of(res.occupancy)
-    print(f"coloring  {a.method}: best {min(times):.2f} s, median {np.median(times):.2f} s of {len(times)} runs")
+    print(
+        f"coloring  {a.method}: best {min(times):.2f} s wall, median {np.median(times):.2f} s of {len(times)} runs; "
+        f"CPU (all threads) {min(cpu):.2f} s; load average {os.getloadavg()[0]:.1f}"
+    )
     print(f"memory    peak RSS {hwm_before:.0f} MB before colouring, {hwm_after:.0f} MB after (+{hwm_after - hwm_before:.0f} MB)")
     print(
         f"result    {res.n_candidates} candidates, {res.n_carved} carved ({res.n_carved_background} seen through "

@@ -412,8 +412,8 @@ def _nb_span(ex, ey, ec, n, r, c0, c1):
     return int(np.ceil(lo)), int(np.floor(hi))
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_project_layer(needed, o, ea, eb, en, cams, proj, ok):
+@nb.njit(cache=True, nogil=True)
+def _nb_project_layer(v0, v1, needed, o, ea, eb, en, cams, proj, ok):
     """Project the needed corners ``o + i*ea + j*eb + s*en`` of a layer in every view.
 
     needed : (na + 1, nb + 1) bool; proj : (V, 2, na + 1, nb + 1, 2) px;
@@ -421,7 +421,7 @@ def _nb_project_layer(needed, o, ea, eb, en, cams, proj, ok):
     on or behind the camera plane.
     """
     V = cams.shape[0]
-    for v in nb.prange(V):
+    for v in range(v0, v1):
         cam = cams[v]
         for s in range(2):
             for i in range(needed.shape[0]):
@@ -543,8 +543,8 @@ def _nb_clear(v, m, C, n_vis, n_tot, sums, sq, bgcnt, cnt):
         sq[v, m, c] = 0.0
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_layer_stats(ab, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, use_buf, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
+@nb.njit(cache=True, nogil=True)
+def _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, use_buf, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
     """Per view and voxel of one layer: counts and sums of the footprint's pixels.
 
     ab : (M, 2) in-layer indices relative to the corner origin ``o``.
@@ -558,7 +558,7 @@ def _nb_layer_stats(ab, proj, ok, o, ea, eb, en, dims, centres, cams, images, ma
     H = images.shape[1]
     W = images.shape[2]
     C = images.shape[3]
-    for v in nb.prange(V):
+    for v in range(v0, v1):
         px = np.empty(8)
         py = np.empty(8)
         ex = np.empty(16)
@@ -567,7 +567,7 @@ def _nb_layer_stats(ab, proj, ok, o, ea, eb, en, dims, centres, cams, images, ma
         out = np.empty(10)
         bgv = bg[v] if use_bg else bg[0]
         for m in range(M):
-            if not _nb_gather(proj[v], ok[v], ab[m, 0], ab[m, 1], px, py):
+            if not sel[m] or not _nb_gather(proj[v], ok[v], ab[m, 0], ab[m, 1], px, py):
                 _nb_clear(v, m, C, n_vis, n_tot, sums, sq, bgcnt, cnt)
                 continue
             code = _nb_layer_code(centres[v], o, en, dims, ab[m, 0], ab[m, 1])
@@ -577,14 +577,14 @@ def _nb_layer_stats(ab, proj, ok, o, ea, eb, en, dims, centres, cams, images, ma
             _nb_store(out, v, m, C, n_vis, n_tot, sums, sq, bgcnt, cnt)
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_layer_mark(ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, marks):
+@nb.njit(cache=True, nogil=True)
+def _nb_layer_mark(v0, v1, ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, marks):
     """Mark, in every view, the footprint pixels of the kept voxels of a layer."""
     V = cams.shape[0]
     M = ab.shape[0]
     H = marks.shape[1]
     W = marks.shape[2]
-    for v in nb.prange(V):
+    for v in range(v0, v1):
         px = np.empty(8)
         py = np.empty(8)
         ex = np.empty(16)
@@ -618,8 +618,8 @@ def _nb_layer_depth(cam, o, ea, eb, en, a, b):
     return cam[6] * x + cam[7] * y + cam[8] * z + cam[11]
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_layer_buffer(ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, zbuf, obuf, box):
+@nb.njit(cache=True, nogil=True)
+def _nb_layer_buffer(v0, v1, ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, zbuf, obuf, box):
     """Item buffer of the kept voxels of one layer: per pixel the nearest one (centre depth).
 
     ``zbuf`` / ``obuf`` must hold inf / -1 on entry; ``box[v]`` receives the
@@ -629,7 +629,7 @@ def _nb_layer_buffer(ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, zbu
     M = ab.shape[0]
     H = zbuf.shape[1]
     W = zbuf.shape[2]
-    for v in nb.prange(V):
+    for v in range(v0, v1):
         px = np.empty(8)
         py = np.empty(8)
         ex = np.empty(16)
@@ -677,13 +677,61 @@ def _nb_layer_buffer(ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, zbu
         box[v, 3] = bc1
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_clear_buffer(zbuf, obuf, box):
-    for v in nb.prange(zbuf.shape[0]):
+@nb.njit(cache=True, nogil=True)
+def _nb_clear_buffer(v0, v1, zbuf, obuf, box):
+    for v in range(v0, v1):
         for r in range(box[v, 0], box[v, 1] + 1):
             for c in range(box[v, 2], box[v, 3] + 1):
                 zbuf[v, r, c] = np.inf
                 obuf[v, r, c] = -1
+
+
+@nb.njit(cache=True, nogil=True)
+def _nb_layer_background(v0, v1, needed, ab, proj, ok, o, ea, eb, en, dims, centres, cams, bg, bgcnt, cnt):
+    """Project a layer's corners, and count each voxel's footprint pixels and background pixels per view."""
+    _nb_project_layer(v0, v1, needed, o, ea, eb, en, cams, proj, ok)
+    M = ab.shape[0]
+    H = bg.shape[1]
+    W = bg.shape[2]
+    px = np.empty(8)
+    py = np.empty(8)
+    ex = np.empty(16)
+    ey = np.empty(16)
+    ec = np.empty(16)
+    for v in range(v0, v1):
+        bgv = bg[v]
+        for m in range(M):
+            bgcnt[v, m] = 0
+            cnt[v, m] = 0
+            if not _nb_gather(proj[v], ok[v], ab[m, 0], ab[m, 1], px, py):
+                continue
+            code = _nb_layer_code(centres[v], o, en, dims, ab[m, 0], ab[m, 1])
+            n, c0, c1, r0, r1, fu, fv = _nb_hull(px, py, code, W, H, ex, ey, ec)
+            k = 0
+            nbg = 0
+            if n > 0:
+                for r in range(r0, r1 + 1):
+                    lo, hi = _nb_span(ex, ey, ec, n, r, c0, c1)
+                    for col in range(lo, hi + 1):
+                        k += 1
+                        if bgv[r, col]:
+                            nbg += 1
+            if k == 0 and fu >= 0:
+                k = 1
+                if bgv[fv, fu]:
+                    nbg += 1
+            bgcnt[v, m] = nbg
+            cnt[v, m] = k
+
+
+@nb.njit(cache=True, nogil=True)
+def _nb_layer_pass(v0, v1, project, needed, ab, keep, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, box, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
+    """One test of a layer in views v0..v1-1: (project the corners,) item buffer of the kept voxels, statistics."""
+    if project:
+        _nb_project_layer(v0, v1, needed, o, ea, eb, en, cams, proj, ok)
+    _nb_layer_buffer(v0, v1, ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, zbuf, obuf, box)
+    _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, True, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt)
+    _nb_clear_buffer(v0, v1, zbuf, obuf, box)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -701,15 +749,15 @@ def _nb_voxel_corners(cam, cx, cy, cz, half, px, py):
     return True
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_item_buffers(ijk, origin, vs, cams, zbuf, ids):
+@nb.njit(cache=True, nogil=True)
+def _nb_item_buffers(v0, v1, ijk, origin, vs, cams, zbuf, ids):
     """Per view: the voxel nearest the camera (by centre depth) over each pixel."""
     M = ijk.shape[0]
     V = cams.shape[0]
     H = zbuf.shape[1]
     W = zbuf.shape[2]
     half = 0.5 * vs
-    for v in nb.prange(V):
+    for v in range(v0, v1):
         px = np.empty(8)
         py = np.empty(8)
         ex = np.empty(16)
@@ -745,8 +793,8 @@ def _nb_item_buffers(ijk, origin, vs, cams, zbuf, ids):
                 idv[fv, fu] = m
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def _nb_owned_stats(ijk, origin, vs, cams, images, ids, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
+@nb.njit(cache=True, nogil=True)
+def _nb_owned_stats(v0, v1, ijk, origin, vs, cams, images, ids, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
     """Like _nb_layer_stats, but a pixel is visible to the voxel that owns it in the item buffer."""
     M = ijk.shape[0]
     V = cams.shape[0]
@@ -754,7 +802,7 @@ def _nb_owned_stats(ijk, origin, vs, cams, images, ids, bg, use_bg, n_vis, n_tot
     W = images.shape[2]
     C = images.shape[3]
     half = 0.5 * vs
-    for v in nb.prange(V):
+    for v in range(v0, v1):
         px = np.empty(8)
         py = np.empty(8)
         ex = np.empty(16)
@@ -774,6 +822,38 @@ def _nb_owned_stats(ijk, origin, vs, cams, images, ids, bg, use_bg, n_vis, n_tot
             n, c0, c1, r0, r1, fu, fv = _nb_hull(px, py, code, W, H, ex, ey, ec)
             _nb_accumulate(images[v], ids[v], bgv, use_bg, m, m, ids[v], ids[v], False, 0.0, ex, ey, ec, n, c0, c1, r0, r1, fu, fv, out)
             _nb_store(out, v, m, C, n_vis, n_tot, sums, sq, bgcnt, cnt)
+
+
+def _n_threads():
+    try:
+        return max(1, int(nb.get_num_threads()))
+    except Exception:  # pragma: no cover
+        return 1
+
+
+def _over_views(kernel, V, *args):
+    """Run ``kernel(v0, v1, *args)`` on slices of the V views, one per thread.
+
+    The kernels release the GIL; threads that wait do so passively, which
+    keeps a shared, oversubscribed machine responsive (numba's OpenMP
+    workers spin while they wait and slow every short parallel region).
+    """
+    n = min(_n_threads(), V)
+    if n <= 1:
+        kernel(0, V, *args)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    global _POOL
+    if _POOL is None or _POOL._max_workers < n:
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="organlab-coloring")
+    edges = np.linspace(0, V, n + 1).astype(int)
+    futures = [_POOL.submit(kernel, int(a), int(b), *args) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    for f in futures:
+        f.result()
+
+
+_POOL = None
 
 
 # =====================================================================
@@ -940,7 +1020,13 @@ class _Stats:
         with np.errstate(invalid="ignore", divide="ignore"):
             per_view = np.where(self.v_vis[:, :, None] > 0, self.v_sums**2 / self.v_vis[:, :, None], 0.0)
         self.bw = per_view.sum(axis=0)
-        self.bgv = np.count_nonzero(self.v_bg > _BG_FRACTION * self.v_cnt, axis=0) >= _BG_VIEWS
+        self.bgv = _seen_through(self.v_bg, self.v_cnt)
+        return self
+
+    def merge(self, other, rows):
+        """Take the pooled statistics of ``rows`` from ``other``; returns self."""
+        for name in ("n_vis", "n_tot", "sums", "sq", "bw", "bgv"):
+            getattr(self, name)[rows] = getattr(other, name)[rows]
         return self
 
     def mean(self):
@@ -966,6 +1052,18 @@ class _Stats:
         return tested & (self.std(measure) > threshold), seen, tested
 
 
+def _within(ab, na, nb_, flags, radius):
+    """Voxels of a layer within chessboard distance ``radius`` of a flagged one (all when radius is None)."""
+    if radius is None:
+        return np.ones(len(ab), bool)
+    from scipy import ndimage
+
+    g = np.zeros((na, nb_), bool)
+    g[ab[flags, 0], ab[flags, 1]] = True
+    g = ndimage.binary_dilation(g, structure=np.ones((3, 3), bool), iterations=int(radius))
+    return g[ab[:, 0], ab[:, 1]]
+
+
 def _support_2d(ab, na, nb_, flags, support):
     """Keep the flags of voxels with at least ``support`` flagged voxels in their 3 x 3 in-layer neighbourhood."""
     if support <= 1 or not flags.any():
@@ -989,6 +1087,11 @@ def _support_3d(ijk, shape, flags, support):
     g[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = flags
     count = ndimage.correlate(g, np.ones((3, 3, 3), np.int32), mode="constant")
     return flags & (count[ijk[:, 0], ijk[:, 1], ijk[:, 2]] >= support)
+
+
+def _seen_through(v_bg, v_cnt):
+    """Voxels whose footprint is mostly background pixels in some view: (V, M) counts -> (M,) bool."""
+    return np.count_nonzero(v_bg > _BG_FRACTION * v_cnt, axis=0) >= _BG_VIEWS
 
 
 def _rgb(mean, C):
@@ -1198,26 +1301,45 @@ def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measu
                     needed[ab[:, 0] + di, ab[:, 1] + dj] = True
             proj = np.empty((V, 2, na + 1, nb_ + 1, 2))
             ok = np.empty((V, 2, na + 1, nb_ + 1), bool)
-            _nb_project_layer(needed, corner, ea, eb, en, cams, proj, ok)
-            # Pass 0: every candidate of the layer opaque (exact visibility
-            # within the layer); then again with the voxels kept so far.
-            keep = np.ones(len(ab), bool)
+            # Voxels seen through to the background in some view go first.
+            seen_through = np.zeros(len(ab), bool)
+            if use_bg:
+                v_bg = np.empty((V, len(ab)), np.int32)
+                v_cnt = np.empty((V, len(ab)), np.int32)
+                _over_views(_nb_layer_background, V, needed, ab, proj, ok, corner, ea, eb, en, dims, centres, cams, bg_arr, v_bg, v_cnt)
+                seen_through = _seen_through(v_bg, v_cnt)
+            else:
+                _over_views(_nb_project_layer, V, needed, corner, ea, eb, en, cams, proj, ok)
+            # Then the colour test, first with every other candidate of the
+            # layer opaque (exact visibility within the layer), then again
+            # with the voxels kept so far, until the decisions settle.
+            keep = ~seen_through
+            test = np.ones(len(ab), bool)  # voxels (re)tested in this pass
+            render = keep  # kept voxels drawn into the layer's item buffer
+            full = None
             for _ in range(1 + _REFINE):
-                _nb_layer_buffer(ab, keep, proj, ok, corner, ea, eb, en, dims, centres, cams, zbuf, obuf, box)
                 st = _Stats(V, len(ab), C)
-                _nb_layer_stats(ab, proj, ok, corner, ea, eb, en, dims, centres, cams, stack, marks, zbuf, obuf, True, bg_arr, use_bg, *st.arrays())
-                _nb_clear_buffer(zbuf, obuf, box)
+                _over_views(
+                    _nb_layer_pass, V, False, needed, ab, render, test, proj, ok, corner, ea, eb, en, dims, centres,
+                    cams, stack, marks, zbuf, obuf, box, bg_arr, use_bg, *st.arrays(),
+                )
                 st.pool()
-                st.ijk = ijk
-                bad, seen, tested = st.decide(threshold, measure, min_pix, min_frac)
+                full = st if full is None else full.merge(st, test)
+                full.ijk = ijk
+                bad, seen, tested = full.decide(threshold, measure, min_pix, min_frac)
                 bad = _support_2d(ab, na, nb_, bad, support)
-                carve = bad | st.bgv
-                if np.array_equal(~carve, keep):
+                carve = bad | seen_through
+                changed = carve == keep
+                if not changed.any():
                     break
                 keep = ~carve
+                # Only voxels whose footprints can overlap a changed one's need a new test.
+                test = _within(ab, na, nb_, changed, None if reach is None else reach + 1)
+                render = keep & _within(ab, na, nb_, changed, None if reach is None else 2 * reach + 2)
+            st = full
             keep = ~carve
             if keep.any():
-                _nb_layer_mark(ab, keep, proj, ok, corner, ea, eb, en, dims, centres, cams, marks)
+                _over_views(_nb_layer_mark, V, ab, keep, proj, ok, corner, ea, eb, en, dims, centres, cams, marks)
             if _DEBUG is not None:
                 _DEBUG.append((ijk, st))
             ci = ijk[carve]
@@ -1226,7 +1348,7 @@ def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measu
             ki = ijk[good]
             colored[ki[:, 0], ki[:, 1], ki[:, 2]] = True
             colors[ki[:, 0], ki[:, 1], ki[:, 2]] = _rgb(st.mean()[good], C)
-            counts["carved_bg"] += int(np.count_nonzero(st.bgv))
+            counts["carved_bg"] += int(np.count_nonzero(seen_through))
             counts["hidden"] += int(np.count_nonzero(keep & ~seen))
             counts["untested"] += int(np.count_nonzero(good & ~tested))
         prev = np.take(occ, layer, axis=axis)
@@ -1240,11 +1362,11 @@ def _owned(stack, cams, bg, ijk, grid):
     origin = np.asarray(grid.origin, dtype=np.float64)
     zbuf = np.empty(stack.shape[:3], np.float32)
     ids = np.empty(stack.shape[:3], np.int32)
-    _nb_item_buffers(ijk, origin, grid.voxel_size, cams, zbuf, ids)
+    _over_views(_nb_item_buffers, V, ijk, origin, grid.voxel_size, cams, zbuf, ids)
     del zbuf
     bg_arr, use_bg = _bg_arg(bg)
     st = _Stats(V, len(ijk), C)
-    _nb_owned_stats(ijk, origin, grid.voxel_size, cams, stack, ids, bg_arr, use_bg, *st.arrays())
+    _over_views(_nb_owned_stats, V, ijk, origin, grid.voxel_size, cams, stack, ids, bg_arr, use_bg, *st.arrays())
     return st.pool()
 
 
