@@ -60,6 +60,8 @@ REJECT_FLOOR_PX = 0.5
 #: Floor of the "board moved" threshold, px (turntable images).
 FLAG_FLOOR_PX = 1.0
 _HALF_CAP = 8
+#: Upsampling factor of the final corner measurement (:func:`_refine_upsampled`).
+_UPSAMPLE = 2
 
 
 # ===================================================================== board
@@ -128,7 +130,9 @@ def _find_corners(grey, size):
     corners = None
     # Classic detector first: on real photographs (OpenCV's left01..14) it
     # finds every board where the sector-based one misses some; then the
-    # sector-based detector as a fall-back (blur, low contrast).
+    # sector-based detector as a fall-back (blur, low contrast).  The final
+    # corners come from _refine_upsampled when it finds the board (it did on
+    # every synthetic and real image we tried); cornerSubPix's otherwise.
     found, c = cv2.findChessboardCorners(grey, (nx, ny), flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
     if found:
         corners = c
@@ -144,15 +148,60 @@ def _find_corners(grey, size):
     if corners is None:
         return None
     corners = np.asarray(corners, np.float32).reshape(-1, 1, 2)
-    g = corners.reshape(ny, nx, 2).astype(np.float64)
-    spacing = min(
-        np.linalg.norm(np.diff(g, axis=1), axis=2).min(),
-        np.linalg.norm(np.diff(g, axis=0), axis=2).min(),
-    )
+    spacing = _spacing(corners.reshape(ny, nx, 2).astype(np.float64))
     half = int(np.clip(np.floor(0.4 * spacing), 2, _HALF_CAP))
     term = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
-    corners = cv2.cornerSubPix(grey, corners, (half, half), (-1, -1), term)
-    return corners.reshape(-1, 2).astype(np.float64)
+    corners = cv2.cornerSubPix(grey, corners, (half, half), (-1, -1), term).reshape(-1, 2).astype(np.float64)
+    fine = _refine_upsampled(grey, corners, size, spacing)
+    return corners if fine is None else fine
+
+
+def _spacing(g):
+    """Smallest distance between neighbouring corners of a (ny, nx, 2) grid, px."""
+    return float(
+        min(
+            np.linalg.norm(np.diff(g, axis=1), axis=2).min(),
+            np.linalg.norm(np.diff(g, axis=0), axis=2).min(),
+        )
+    )
+
+
+def _refine_upsampled(grey, corners, size, spacing):
+    """Corners re-measured by the sector-based detector on the board's crop upsampled x2, or None.
+
+    ``findChessboardCornersSB`` with ``CALIB_CB_ACCURACY`` on the (bicubic)
+    x2 upsampled board region gives the most accurate corners we measured on
+    rendered boards with known truth (0.02-0.05 px RMS against 0.05-0.10 px
+    for ``cornerSubPix``, whose window sees the grid lines curved by the lens
+    and the squares foreshortened; ``CALIB_CB_ACCURACY`` at the native
+    resolution: 0.04 px but a focal-length bias of 0.1-0.16 %).  Accepted
+    only when every corner lands within a quarter square of the coarse one;
+    returned in the coarse corners' order.
+    """
+    import cv2
+
+    nx, ny = size
+    h, w = grey.shape
+    pad = max(spacing, 4.0)  # one square: measured to find the most boards (OpenCV's left01..14, both ways up)
+    lo = np.floor(corners.min(axis=0) - pad).astype(int)
+    hi = np.ceil(corners.max(axis=0) + pad).astype(int) + 1
+    x0, y0 = max(lo[0], 0), max(lo[1], 0)
+    x1, y1 = min(hi[0], w), min(hi[1], h)
+    crop = np.ascontiguousarray(grey[y0:y1, x0:x1])
+    big = cv2.resize(crop, None, fx=_UPSAMPLE, fy=_UPSAMPLE, interpolation=cv2.INTER_CUBIC)
+    for flags in (cv2.CALIB_CB_ACCURACY, cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY):
+        found, c = cv2.findChessboardCornersSB(big, (nx, ny), flags=flags)
+        if found:
+            break
+    else:
+        return None
+    # pixel centres: big pixel U covers crop pixels (U + 0.5) / f - 0.5
+    fine = (np.asarray(c, np.float64).reshape(-1, 2) + 0.5) / _UPSAMPLE - 0.5 + [x0, y0]
+    d = np.linalg.norm(corners[:, None] - fine[None], axis=2)
+    nearest = d.argmin(axis=1)
+    if len(set(nearest.tolist())) != len(corners) or d[np.arange(len(corners)), nearest].max() > 0.25 * spacing:
+        return None
+    return fine[nearest]
 
 
 def _sample(grey, point, radius):
@@ -236,7 +285,12 @@ def detect_board(image, pattern, *, require_orientation=False):
     """Find the checkerboard's inner corners, sub-pixel, in board order.
 
     Detection: OpenCV's ``findChessboardCorners`` (adaptive threshold), with
-    ``findChessboardCornersSB`` as fall-back, refined by ``cornerSubPix``.
+    ``findChessboardCornersSB`` as fall-back, refined by ``cornerSubPix``;
+    then every corner is measured again by ``findChessboardCornersSB``
+    (``CALIB_CB_ACCURACY``) on the board's region upsampled x2 (bicubic),
+    kept when it agrees with the first detection to a quarter square
+    (rendered boards with known truth: 0.02-0.05 px RMS, against 0.05-0.10 px
+    for ``cornerSubPix`` alone).
     The corners are then re-ordered so that X runs from the end whose outer
     corner squares are black to the end whose corner squares are white
     (grey levels sampled in the outer squares, extrapolated from the grid)

@@ -357,8 +357,10 @@ def test_calibrate_session_rendered(rendered_session, tmp_path):
     assert calls[-1] == (N_INTR + 6, N_INTR + 6)
     cam = calib["camera"]
     K, Kt = np.array(cam["K"]), truth.K
-    assert abs(K[0, 0] / Kt[0, 0] - 1) < 0.002 and abs(K[1, 1] / Kt[1, 1] - 1) < 0.002
-    assert np.all(np.abs(K[:2, 2] - Kt[:2, 2]) < 1.5)
+    # the issue asks focal within 0.2 % and cc within 1.5 px; we hold half of that
+    # (measured: focal -0.02 %, cc (-0.22, 0.13) px)
+    assert abs(K[0, 0] / Kt[0, 0] - 1) < 0.001 and abs(K[1, 1] / Kt[1, 1] - 1) < 0.001
+    assert np.all(np.abs(K[:2, 2] - Kt[:2, 2]) < 0.75)
     assert cam["rms_px"] < 0.2 and not cam["rejected"]
     u = cam["uncertainty_3sigma"]
     assert np.all(np.abs(np.diag(K)[:2] - np.diag(Kt)[:2]) < u["fc"])
@@ -401,3 +403,17 @@ def test_calibrate_session_given_camera(rendered_session):
     np.testing.assert_allclose(calib["camera"]["K"], truth.K)
     c = Camera(truth.K, truth.dist, calib["turntable"]["R_cam"], calib["turntable"]["t_cam"], truth.image_size).center
     assert np.linalg.norm(c - truth.center) < 0.5
+
+
+@pytest.mark.slow
+def test_rendered_corners_match_truth(rendered_session):
+    """Detected corners of the distorted, tilted rendered boards against their true projections."""
+    root, truth = rendered_session
+    cam0 = truth.with_pose(np.eye(3), np.zeros(3))
+    errs = []
+    for k, (R, t) in enumerate(S.intrinsic_board_poses(truth, N_INTR, seed=0)):
+        c = detect_board(cv2.imread(str(root / "intr" / f"{k:02d}.png"), cv2.IMREAD_GRAYSCALE), PAT)
+        uv = cam0.project(S.board_object_points(PAT) @ R.T + t)
+        errs.append(np.sqrt(np.mean(np.sum((c - uv) ** 2, axis=1))))
+    # measured: mean 0.047 px, worst 0.12 px (cornerSubPix alone: 0.10 and 0.21 px)
+    assert np.mean(errs) < 0.07 and np.max(errs) < 0.16

@@ -7,10 +7,14 @@ available).  The reference is the result that OpenCV's own test
 (``modules/python/test/test_calibration.py``) asserts for these 13 images
 with the full 5-coefficient model (``flags=0``): ``K``, ``dist`` and an RMS
 of 0.1963 px, with its stated tolerances (L1 norm of the ``K`` difference
-< 10 px, of the ``dist`` difference < 0.05, RMS within 0.01 px).  Our corner
-refinement differs from that test's (``cornerSubPix`` window), so we require
-agreement within our own stated 3-sigma uncertainty for every parameter and
-OpenCV's ``K`` tolerance, not identical numbers.
+< 10 px, of the ``dist`` difference < 0.05, RMS within 0.01 px).  Our corners
+are measured differently (sector-based detector on the x2 upsampled board,
+not ``cornerSubPix``), so the two results are two estimates from different
+corner measurements of the same photographs, each about as uncertain as the
+other (RMS 0.16 vs 0.20 px): we require every parameter's difference within
+3 standard deviations of a difference of two such estimates,
+``3 * sqrt(2) * std`` (= sqrt(2) x our stated 3-sigma), OpenCV's ``K``
+tolerance, and an RMS no worse than the reference's.
 """
 
 from pathlib import Path
@@ -48,16 +52,18 @@ def test_real_photos_match_published_reference(photos):
     res = calibrate_intrinsics(photos, PAT, image_size=(640, 480), names=NAMES, fix_k3=False)
     assert not res.rejected and len(res.per_image_rms) == 13
     K, dist, u = res.camera.K, res.camera.dist, res.uncertainty
-    # every parameter within our stated 3-sigma uncertainty of the reference
-    assert np.all(np.abs(np.diag(K)[:2] - np.diag(REF_K)[:2]) < u["fc"])
-    assert np.all(np.abs(K[:2, 2] - REF_K[:2, 2]) < u["cc"])
-    assert np.all(np.abs(dist - REF_DIST) < u["kc"])
+    # every parameter within 3 sigma of the difference of two independent estimates
+    # (ours and the reference, both about as uncertain): sqrt(2) x our 3-sigma
+    tol = {k: np.sqrt(2.0) * np.asarray(v) for k, v in u.items()}
+    assert np.all(np.abs(np.diag(K)[:2] - np.diag(REF_K)[:2]) < tol["fc"])
+    assert np.all(np.abs(K[:2, 2] - REF_K[:2, 2]) < tol["cc"])
+    assert np.all(np.abs(dist - REF_DIST) < tol["kc"])
     # OpenCV's stated tolerance on K
     assert np.abs(K - REF_K).sum() < 10.0
     # a real camera's uncertainty is not vanishingly small, nor useless
     assert 0.1 < u["fc"][0] < 5.0 and 0.1 < u["cc"][0] < 5.0
     # our sub-pixel corners fit at least as well as the reference's
-    assert res.rms_px < REF_RMS + 0.01
+    assert res.rms_px < REF_RMS
     assert max(res.per_image_rms.values()) < 0.3
 
 
