@@ -1,8 +1,9 @@
 """Benchmark of voxel colouring on the bundled sample session.
 
 ``sample_sessions/aaa_phantom`` (36 views, 640 x 480 px, JPEG): cameras from
-the session's ``calibration.json`` (intrinsics and turntable pose, as
-``organlab calibrate`` wrote them), silhouettes by background subtraction
+the session's ``calibration.json`` (as ``organlab calibrate`` writes it), or
+calibrated in memory from the session's board images when it is missing (as
+:func:`organlab.pipeline.reconstruct` does), silhouettes by background subtraction
 (:func:`organlab.silhouette.session_silhouettes`), visual hull by
 :func:`organlab.carving.carve` at 1 mm, then
 :func:`organlab.coloring.color_voxels` with its defaults.
@@ -42,17 +43,17 @@ def _vm(key):
 
 
 def _cameras(session):
-    from organlab.camera import Camera
+    """The views' cameras as the pipeline gets them; calibrates in memory when calibration.json is missing."""
+    from organlab import pipeline
 
-    cal = session.calibration
-    if cal and "camera" in cal and "turntable" in cal:
-        c = cal["camera"]
-        base = Camera(c["K"], c["dist"], cal["turntable"]["R_cam"], cal["turntable"]["t_cam"], session.image_size)
-        return [base.at_table_angle(v.angle_deg) for v in session.views], "calibration.json"
-    if session.camera is not None and all(v.pose is not None for v in session.views):
-        cam = session.given_camera()
-        return [cam.with_pose(*v.pose) for v in session.views], "session.json poses"
-    raise SystemExit(f"{session.root}: no calibration.json with a turntable and no per-view poses; run 'organlab calibrate' first")
+    calibration, source = session.calibration, "from calibration.json"
+    if pipeline._needs_calibration(session):
+        from organlab import calibration as calib
+
+        t0 = time.perf_counter()
+        calibration = calib.calibrate_session(session)
+        source = f"calibrated from the session's board images ({time.perf_counter() - t0:.1f} s, not written)"
+    return pipeline.session_cameras(session, calibration), source
 
 
 def main():
@@ -80,7 +81,7 @@ def main():
     t_hull = time.perf_counter() - t0
 
     threads = os.environ.get("NUMBA_NUM_THREADS") or str(os.cpu_count())
-    print(f"session   {session.root.name}: {len(images)} views, {session.image_size[0]} x {session.image_size[1]} px, cameras from {source}")
+    print(f"session   {session.root.name}: {len(images)} views, {session.image_size[0]} x {session.image_size[1]} px; cameras: {source}")
     print(f"grid      {grid.shape} at {grid.voxel_size:g} mm ({grid.n_voxels / 1e6:.2f} M voxels); numba threads {threads}")
     print(f"inputs    silhouettes {t_sil:.2f} s, hull (carve) {t_hull:.2f} s, {int(hull.sum())} hull voxels")
 

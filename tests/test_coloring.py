@@ -282,7 +282,6 @@ def test_threshold_zero_without_support_carves_more(slot_scene):
     assert loose.n_carved == loose.n_carved_background
 
 
-@pytest.mark.slow
 def test_space_carving_carves_the_slot_with_any_cameras(slot_scene):
     """Space carving works where the layered sweep is refused (a camera below the top)."""
     scene, cams, images, masks, grid, hull, truth = slot_scene
