@@ -123,7 +123,8 @@ the rays through it reach the background.
 
 Defaults were tuned on the synthetic grooved specimen
 (:mod:`organlab.synthetic`, 36 views of 640 x 480 px, 1 mm voxels): about
-64 % of the hull's excess volume carved for 0.4 % of the true volume lost.
+64 % of the hull's excess volume carved for 0.5 % of the true volume lost
+(``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
@@ -385,14 +386,6 @@ def _nb_voxel_code(cam, cx, cy, cz, half):
 
 
 @nb.njit(cache=True, nogil=True)
-def _nb_inside(ex, ey, ec, n, u, v):
-    for a in range(n):
-        if ex[a] * u + ey[a] * v + ec[a] < 0.0:
-            return False
-    return True
-
-
-@nb.njit(cache=True, nogil=True)
 def _nb_span(ex, ey, ec, n, r, c0, c1):
     """Columns ``lo..hi`` of row ``r`` whose pixel centres lie in the hull (empty if lo > hi)."""
     lo = float(c0)
@@ -420,7 +413,6 @@ def _nb_project_layer(v0, v1, needed, o, ea, eb, en, cams, proj, ok):
     ok : (V, 2, na + 1, nb + 1), False for unneeded corners and for corners
     on or behind the camera plane.
     """
-    V = cams.shape[0]
     for v in range(v0, v1):
         cam = cams[v]
         for s in range(2):
@@ -553,7 +545,6 @@ def _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cam
     the visible pixels), bgcnt (background footprint pixels), cnt (all
     footprint pixels).
     """
-    V = cams.shape[0]
     M = ab.shape[0]
     H = images.shape[1]
     W = images.shape[2]
@@ -580,7 +571,6 @@ def _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cam
 @nb.njit(cache=True, nogil=True)
 def _nb_layer_mark(v0, v1, ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, marks):
     """Mark, in every view, the footprint pixels of the kept voxels of a layer."""
-    V = cams.shape[0]
     M = ab.shape[0]
     H = marks.shape[1]
     W = marks.shape[2]
@@ -625,7 +615,6 @@ def _nb_layer_buffer(v0, v1, ab, keep, proj, ok, o, ea, eb, en, dims, centres, c
     ``zbuf`` / ``obuf`` must hold inf / -1 on entry; ``box[v]`` receives the
     touched pixel rectangle ``(r0, r1, c0, c1)`` so that it can be cleared.
     """
-    V = cams.shape[0]
     M = ab.shape[0]
     H = zbuf.shape[1]
     W = zbuf.shape[2]
@@ -753,7 +742,6 @@ def _nb_voxel_corners(cam, cx, cy, cz, half, px, py):
 def _nb_item_buffers(v0, v1, ijk, origin, vs, cams, zbuf, ids):
     """Per view: the voxel nearest the camera (by centre depth) over each pixel."""
     M = ijk.shape[0]
-    V = cams.shape[0]
     H = zbuf.shape[1]
     W = zbuf.shape[2]
     half = 0.5 * vs
@@ -797,7 +785,6 @@ def _nb_item_buffers(v0, v1, ijk, origin, vs, cams, zbuf, ids):
 def _nb_owned_stats(v0, v1, ijk, origin, vs, cams, images, ids, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
     """Like _nb_layer_stats, but a pixel is visible to the voxel that owns it in the item buffer."""
     M = ijk.shape[0]
-    V = cams.shape[0]
     H = images.shape[1]
     W = images.shape[2]
     C = images.shape[3]
