@@ -7,6 +7,7 @@ import pytest
 
 from organlab.camera import Camera
 from organlab.coloring import (
+    DEFAULT_THRESHOLD,
     ColoringResult,
     VisibilityConstraintError,
     check_ordinal_visibility,
@@ -249,7 +250,7 @@ def test_voxel_coloring_carves_the_slot(slot_scene):
     assert np.count_nonzero(slot) > 300  # the silhouettes leave most of the slot filled
     # default threshold (tuned for shaded, noisy renders), and a tighter one
     # that suits these flat-shaded, noise-free images
-    for threshold, least in ((17.0, 0.5), (10.0, 0.7)):
+    for threshold, least in ((DEFAULT_THRESHOLD, 0.5), (10.0, 0.7)):
         res = color_voxels(images, cams, hull, grid, masks=masks, threshold=threshold)
         occ = res.occupancy
         assert res.sweep == "-z"
