@@ -216,9 +216,7 @@ def reconstruct(
         t0 = time.perf_counter()
         kw = {} if color_threshold is None else {"threshold": color_threshold}
         res = coloring.color_voxels(images, cameras, occupancy, grid, masks=[s.mask for s in sils], progress=bar, **kw)
-        occupancy, colors = res.occupancy, res.colors
-        if field_ is not None:
-            field_ = np.where(occupancy, field_, np.minimum(field_, 0.0)).astype(np.float32)
+        occupancy, colors, colored = res.occupancy, res.colors, res.colored
         timings["coloring"] = time.perf_counter() - t0
         bar.close()
 
@@ -227,9 +225,13 @@ def reconstruct(
 
     bar = progress("surface")
     t0 = time.perf_counter()
-    mesh = mesh_from_volume(field_ if field_ is not None else occupancy, grid, level=0.5)
+    # after colouring, the surface is the coloured voxel model's: the hull field knows
+    # nothing of the voxels colouring carved (measured on the sample at 1 mm: mesh of
+    # the occupancy -0.82 %, of the field with carved voxels set outside -1.85 to -3.1 %)
+    surface_of = occupancy if (colors is not None or field_ is None) else field_
+    mesh = mesh_from_volume(surface_of, grid, level=0.5)
     if colors is not None:
-        mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, occupancy, colors, grid))
+        mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, colored, colors, grid))
     bar(1, 1)
     timings["surface"] = time.perf_counter() - t0
     bar.close()
@@ -238,11 +240,11 @@ def reconstruct(
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration)
 
 
-def _vertex_colors(vertices, occupancy, colors, grid):
+def _vertex_colors(vertices, colored, colors, grid):
     """Colour of the nearest coloured voxel of each vertex."""
     from scipy import ndimage
 
-    has = occupancy & (colors.reshape(-1, 3).any(axis=1).reshape(occupancy.shape))
+    has = np.asarray(colored, dtype=bool)
     if not has.any():
         return np.full((len(vertices), 3), 128, np.uint8)
     _, idx = ndimage.distance_transform_edt(~has, return_indices=True)
