@@ -1,7 +1,7 @@
 """The ``organlab`` command line.
 
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
-                         [--method hull|coloring] [--color-threshold X]
+                         [--method hull|coloring|space_carving] [--color-threshold X]
     organlab calibrate SESSION [--figures DIR]
     organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small]
 
@@ -39,13 +39,15 @@ def _parser():
     r.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
     r.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
                    help="silhouette threshold in grey levels (default: Li's automatic threshold per view)")
-    r.add_argument("--method", choices=["hull", "coloring"], default="hull",
-                   help="hull: visual hull; coloring: voxel coloring on the hull (recovers concavities)")
+    r.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull",
+                   help="hull: visual hull; coloring: Seitz & Dyer voxel coloring on the hull (recovers concavities "
+                        "no silhouette shows; needs the cameras above the specimen); space_carving: the same for any "
+                        "camera layout (slower)")
     r.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",
                    help="subvoxel: sub-pixel silhouettes, surface between voxel centres (default); "
                         "thesis: the thesis's 8-corner bounding-box test")
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
-                   help="photo-consistency threshold (std of grey levels) for --method coloring")
+                   help="photo-consistency threshold (grey levels) for --method coloring/space_carving")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
     r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -105,13 +105,6 @@ class Session:
             return None
         return Camera(self.camera["K"], self.camera["dist"], image_size=self.image_size)
 
-    def calibrated_camera(self):
-        """Intrinsics from ``calibration.json`` as a :class:`Camera`, or None."""
-        if not self.calibration or "camera" not in self.calibration:
-            return None
-        c = self.calibration["camera"]
-        return Camera(c["K"], c["dist"], image_size=self.image_size)
-
 
 def _fail(session_json, key, message):
     raise SessionError(f"{session_json}: {key}: {message}")
