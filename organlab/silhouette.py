@@ -37,7 +37,7 @@ __all__ = [
 def _stack(frames):
     frames = list(frames)
     if not frames:
-        raise ValueError("background_model needs at least one frame")
+        raise ValueError("at least one background frame is needed")
     shapes = {f.shape for f in frames}
     if len(shapes) != 1:
         raise ValueError(f"background frames differ in shape: {sorted(shapes)}")
@@ -208,7 +208,7 @@ def clean_mask(mask, *, open_radius=1, close_radius=2, min_area_fraction=0.05, f
     out = np.isin(labels, keep)
     if fill_holes:
         inv = (~out).astype(np.uint8)
-        n2, lab2, _, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
+        _, lab2 = cv2.connectedComponents(inv, connectivity=4)
         border = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
         holes = ~np.isin(lab2, border) & (inv > 0)
         out = out | holes
