@@ -81,9 +81,9 @@ def _check_pattern(pattern):
     return Pattern(ic, float(pattern.square_size), pattern.type)
 
 
-def _orientable(pattern):
+def _orientable(size):
     """True when the board's X direction is defined by its corner colours (odd x even inner corners)."""
-    nx, ny = pattern.inner_corners
+    nx, ny = size
     return nx % 2 == 1 and ny % 2 == 0
 
 
@@ -250,7 +250,7 @@ def _orient(grey, corners, size):
     nx, ny = size
     g = corners.reshape(ny, nx, 2)
     oriented = False
-    if nx % 2 == 1 and ny % 2 == 0:
+    if _orientable(size):
         corner, neighbour = _corner_squares(grey, g)
         diffs = {k: corner[k] - neighbour[k] for k in corner}
         finite = [abs(d) for d in diffs.values() if np.isfinite(d)]
@@ -279,6 +279,28 @@ def _detect(image, pattern):
     if raw is None:
         return None, False
     return _orient(grey, raw, pattern.inner_corners)
+
+
+def _detect_all(images, names, pattern, *, need_orientation, progress):
+    """Board corners of every image that shows one, and why the others were left out.
+
+    Returns ``(corners, rejected)``: dicts keyed by image name, of
+    ``(N, 2)`` float64 corners in board order and of the reason; a reason
+    starting with ``"no "`` means no board at all.
+    """
+    nx, ny = pattern.inner_corners
+    corners, rejected = {}, {}
+    for k, (img, name) in enumerate(zip(images, names)):
+        c, oriented = _detect(img, pattern)
+        if c is None:
+            rejected[name] = f"no {nx}x{ny} board found"
+        elif need_orientation and not oriented:
+            rejected[name] = "board found but its black/white ends cannot be told (corner squares cut off or low contrast)"
+        else:
+            corners[name] = c
+        if progress is not None:
+            progress(k + 1, len(images))
+    return corners, rejected
 
 
 def detect_board(image, pattern, *, require_orientation=False):
@@ -339,14 +361,13 @@ def _rodrigues(rvecs):
     return R
 
 
-def _rvec(R):
-    import cv2
-
-    return cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
-
-
 def _project(K, dist, pc):
-    """Camera-frame points (..., 3) to pixels (..., 2) with the Bouguet model."""
+    """Camera-frame points (..., 3) to pixels (..., 2) with the Bouguet model.
+
+    ``Camera.project`` without building a :class:`Camera` (whose checks cost
+    more than the projection) in the fits' residuals, where ``K`` changes
+    every call and the points are batched over many poses.
+    """
     shape = pc.shape[:-1]
     pc = pc.reshape(-1, 3)
     xn = pc[:, :2] / pc[:, 2:3]
@@ -388,9 +409,11 @@ class IntrinsicCalibration:
         Board-to-camera ``(rvec, tvec)`` per image used, mm.
     corners : dict of str to (N, 2) float64
         Detected corners per image (board order), px.
-    image_size : (2,) int
     fixed : tuple of str
-        Parameters held fixed (``"alpha_c"`` unless ``estimate_skew``).
+        Parameters held fixed: ``"alpha_c"`` unless ``estimate_skew``,
+        ``"k3"`` with ``fix_k3``.
+    image_size : (2,) int
+        ``(width, height)``, px (the camera's).
     """
 
     camera: Camera
@@ -400,8 +423,11 @@ class IntrinsicCalibration:
     rejected: dict
     extrinsics: dict
     corners: dict = field(repr=False, default_factory=dict)
-    image_size: tuple = (0, 0)
     fixed: tuple = ()
+
+    @property
+    def image_size(self):
+        return self.camera.image_size
 
     @property
     def uncertainty(self):
@@ -487,7 +513,7 @@ def _refine_with_skew(obj, pts, K, dist, rv, tv, fix_k3):
     """Joint least squares over fc, cc, alpha_c, kc and every board pose; std from the Jacobian."""
     from scipy.optimize import least_squares
 
-    n_img, n_pts = pts.shape[:2]
+    n_img = pts.shape[0]
     base = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1] / K[0, 0], *dist])
     fixed = np.zeros(10, bool)
     if fix_k3:
@@ -513,13 +539,13 @@ def _refine_with_skew(obj, pts, K, dist, rv, tv, fix_k3):
 
 
 def _load_images(images, names, image_size, what):
-    """Images (arrays or paths) to a list of grey arrays; checks sizes."""
+    """Images (arrays or paths) to a list of arrays (paths read grey); checks shapes and sizes."""
     out = []
     for img, name in zip(images, names):
         if isinstance(img, (str, Path)):
             img = read_image(img, grey=True, key=what)
         img = np.asarray(img)
-        if img.ndim not in (2, 3):
+        if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
             raise CalibrationError(f"{what} image '{name}' has shape {img.shape}; expected (H, W) or (H, W, 3)")
         size = (img.shape[1], img.shape[0])
         if size != tuple(image_size):
@@ -529,6 +555,16 @@ def _load_images(images, names, image_size, what):
             )
         out.append(img)
     return out
+
+
+def _check_image_size(image_size):
+    try:
+        size = tuple(int(s) for s in image_size)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"image_size must be (width, height), got {image_size!r}") from None
+    if len(size) != 2 or min(size) <= 0:
+        raise CalibrationError(f"image_size must be (width, height) > 0, got {size}")
+    return size
 
 
 def _names(images, names):
@@ -602,25 +638,11 @@ def calibrate_intrinsics(
     p = _check_pattern(pattern)
     images = list(images)
     names = _names(images, names)
-    try:
-        image_size = tuple(int(s) for s in image_size)
-    except TypeError:
-        raise CalibrationError(f"image_size must be (width, height), got {image_size!r}") from None
-    if len(image_size) != 2 or min(image_size) <= 0:
-        raise CalibrationError(f"image_size must be (width, height) > 0, got {image_size}")
+    image_size = _check_image_size(image_size)
     if not images:
         raise CalibrationError("no intrinsic calibration images given")
-    greys = _load_images(images, names, image_size, "intrinsic")
-    obj = board_points(p)
-    corners, rejected = {}, {}
-    for k, (img, name) in enumerate(zip(greys, names)):
-        c, _ = _detect(img, p)
-        if c is None:
-            rejected[name] = f"no {p.inner_corners[0]}x{p.inner_corners[1]} board found"
-        else:
-            corners[name] = c
-        if progress is not None:
-            progress(k + 1, len(greys))
+    images = _load_images(images, names, image_size, "intrinsic")
+    corners, rejected = _detect_all(images, names, p, need_orientation=False, progress=progress)
     if not corners:
         raise CalibrationError(_no_board_message("intrinsic", p, len(images)))
     if len(corners) < min_images:
@@ -671,7 +693,7 @@ def fit_intrinsics(
     """
     p = _check_pattern(pattern)
     obj = board_points(p)
-    image_size = tuple(int(v) for v in image_size)
+    image_size = _check_image_size(image_size)
     corners = {str(n): np.asarray(c, np.float64).reshape(-1, 2) for n, c in corners.items()}
     for n, c in corners.items():
         if c.shape[0] != obj.shape[0]:
@@ -708,7 +730,6 @@ def fit_intrinsics(
         rejected=rejected,
         extrinsics={n: (rv[k].copy(), tv[k].copy()) for k, n in enumerate(used)},
         corners=corners,
-        image_size=image_size,
         fixed=fixed,
     )
 
@@ -753,7 +774,6 @@ class TurntableCalibration:
     board_offset_mm: np.ndarray
     std: dict
     corners: dict = field(repr=False, default_factory=dict)
-    square_size: float = 0.0
 
     @property
     def R_cam(self):
@@ -848,7 +868,7 @@ def _tt_init(K, dist, obj, pts, angles):
         A[3 * k : 3 * k + 3, 0:2] = M[:, :2]
         A[3 * k : 3 * k + 3, 2:5] = np.eye(3)
     sol = np.linalg.lstsq(A, b, rcond=None)[0]
-    return np.concatenate([_rvec(R_cam), sol[2:5], sol[0:2]])
+    return np.concatenate([cv2.Rodrigues(R_cam)[0].ravel(), sol[2:5], sol[0:2]])
 
 
 def _tt_fit(K, dist, obj, pts, angles, x0=None):
@@ -931,7 +951,7 @@ def calibrate_turntable(
     p = _check_pattern(pattern)
     if not isinstance(camera, Camera):
         raise CalibrationError(f"camera must be an organlab Camera (the intrinsics), got {type(camera).__name__}")
-    if not _orientable(p):
+    if not _orientable(p.inner_corners):
         nx, ny = p.inner_corners
         raise CalibrationError(
             f"pattern.inner_corners is {nx}x{ny}: the turntable calibration needs an odd number of inner corners along "
@@ -950,34 +970,22 @@ def calibrate_turntable(
     angles = [float(a) for a in angles_arr]
     if not images:
         raise CalibrationError("no turntable calibration images given")
-    greys = _load_images(images, names, camera.image_size, "turntable")
-    K, dist = camera.K, camera.dist
-    obj = board_points(p)
-
-    corners, rejected = {}, {}
-    for k, (img, name) in enumerate(zip(greys, names)):
-        c, oriented = _detect(img, p)
-        if c is None:
-            rejected[name] = f"no {p.inner_corners[0]}x{p.inner_corners[1]} board found"
-        elif not oriented:
-            rejected[name] = "board found but its black/white ends cannot be told (corner squares cut off or low contrast)"
-        else:
-            corners[name] = c
-        if progress is not None:
-            progress(k + 1, len(greys))
+    images = _load_images(images, names, camera.image_size, "turntable")
+    corners, rejected = _detect_all(images, names, p, need_orientation=True, progress=progress)
     if not corners and all(r.startswith("no ") for r in rejected.values()):
         raise CalibrationError(_no_board_message("turntable", p, len(images)))
-    ang = {n: a for n, a in zip(names, angles)}
-    if len(corners) < 2 or _distinct_angles([ang[n] for n in corners]) < 2:
+    ang = dict(zip(names, angles))
+    n_angles = _distinct_angles([ang[n] for n in corners])
+    if len(corners) < 2 or n_angles < 2:
         failed = ", ".join(f"{n} ({r})" for n, r in rejected.items()) or "none"
         raise CalibrationError(
-            f"only {len(corners)} turntable images with a usable board at {_distinct_angles([ang[n] for n in corners])} "
+            f"only {len(corners)} turntable images with a usable board at {n_angles} "
             f"distinct angles (need 2 angles, better 6+); failed: {failed}"
         )
 
-    tt = fit_turntable({n: corners[n] for n in corners}, {n: ang[n] for n in corners}, camera, p, flag_factor=flag_factor, flag_floor_px=flag_floor_px)
+    tt = fit_turntable(corners, {n: ang[n] for n in corners}, camera, p, flag_factor=flag_factor, flag_floor_px=flag_floor_px)
     tt.rejected = rejected
-    tt.angles_deg = {n: ang[n] for n in names}
+    tt.angles_deg = ang
     return tt
 
 
@@ -994,6 +1002,8 @@ def fit_turntable(corners, angles_deg, camera, pattern, *, flag_factor=REJECT_FA
     camera : Camera
         Intrinsics.
     pattern : Pattern
+    flag_factor, flag_floor_px : float
+        As in :func:`calibrate_turntable`.
 
     Returns
     -------
@@ -1002,6 +1012,9 @@ def fit_turntable(corners, angles_deg, camera, pattern, *, flag_factor=REJECT_FA
     p = _check_pattern(pattern)
     K, dist = camera.K, camera.dist
     obj = board_points(p)
+    missing = [str(n) for n in corners if n not in angles_deg]
+    if missing:
+        raise CalibrationError(f"angles_deg has no table angle for {', '.join(missing)}; give one angle per image")
     ang = {n: float(angles_deg[n]) for n in corners}
     corners = {n: np.asarray(c, np.float64).reshape(-1, 2) for n, c in corners.items()}
     for n, c in corners.items():
@@ -1010,11 +1023,11 @@ def fit_turntable(corners, angles_deg, camera, pattern, *, flag_factor=REJECT_FA
     if len(corners) < 2 or _distinct_angles(list(ang.values())) < 2:
         raise CalibrationError("the turntable fit needs boards at 2 or more distinct table angles")
     det = list(corners)
+    pts_all = np.stack([corners[n] for n in det])
     used = det
-    x, cov = _tt_fit(K, dist, obj, np.stack([corners[n] for n in used]), [ang[n] for n in used])
+    x, cov = _tt_fit(K, dist, obj, pts_all, [ang[n] for n in used])
     flagged = []
     for _pass in range(2):
-        pts_all = np.stack([corners[n] for n in det])
         res = _tt_residuals(x, K, dist, obj, [ang[n] for n in det], pts_all).reshape(len(det), -1, 2)
         per = np.sqrt(np.mean(np.sum(res**2, axis=2), axis=1))
         if _pass == 1:
@@ -1058,7 +1071,6 @@ def fit_turntable(corners, angles_deg, camera, pattern, *, flag_factor=REJECT_FA
         board_offset_mm=x[6:8].copy(),
         std=std,
         corners=corners,
-        square_size=p.square_size,
     )
 
 
@@ -1224,7 +1236,12 @@ def check_figures(session, calib, out_dir):
     cam_d = calib["camera"]
     camera = Camera(cam_d["K"], cam_d["dist"], image_size=tuple(cam_d.get("image_size", session.image_size)))
     pattern = session.pattern
-    obj = board_points(pattern) if pattern is not None else None
+    if pattern is None and ((cam_d.get("source") == "calibrated" and session.intrinsic_images) or calib.get("turntable")):
+        raise CalibrationError(
+            f"{session.json_path}: pattern is required to draw the calibration figures: "
+            "{'inner_corners': [cols, rows], 'square_size': mm}"
+        )
+    obj = None if pattern is None else board_points(pattern)
     scale = 2 if camera.width < 1000 else 1
     paths = []
 
@@ -1253,7 +1270,7 @@ def check_figures(session, calib, out_dir):
         off = np.array(tt["axis"]["board_offset_mm"] + [0.0])
         X0 = obj + off
         radius = float(np.hypot(*off[:2]))
-        height = float(np.ptp(obj[:, 0])) if obj is not None else 100.0
+        height = float(np.ptp(obj[:, 0]))
         ts = np.linspace(0, 2 * np.pi, 181)
         circle = np.stack([radius * np.cos(ts), radius * np.sin(ts), np.zeros_like(ts)], axis=1)
         axis_pts = np.array([[0.0, 0.0, z] for z in np.linspace(0.0, height, 11)])
