@@ -135,6 +135,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from ._nbcam import pack_cameras, to_camera, to_pixel
 from .camera import Camera
 from .errors import OrganlabError
 from .grid import VoxelGrid
@@ -233,30 +234,18 @@ class ColoringResult:
 # =====================================================================
 # numba kernels
 # =====================================================================
-# A camera is packed as 22 float64: R (9, row major), t (3), fx, K[0, 1], cx,
-# fy, cy, k1, k2, p1, p2, k3.
+# A camera is packed by organlab._nbcam.pack_camera: R (9, row major), t (3),
+# fx, K[0, 1], cx, fy, cy, k1, k2, p1, p2, k3, |t|_1.
 
 
 @nb.njit(cache=True, nogil=True)
 def _nb_project(cam, x, y, z):
     """Camera.project for one point: (u, v, z_cam); z_cam <= 0 means behind."""
-    xc = cam[0] * x + cam[1] * y + cam[2] * z + cam[9]
-    yc = cam[3] * x + cam[4] * y + cam[5] * z + cam[10]
-    zc = cam[6] * x + cam[7] * y + cam[8] * z + cam[11]
+    xc, yc, zc = to_camera(cam, x, y, z)
     if not zc > 0.0:
         return 0.0, 0.0, -1.0
-    xn = xc / zc
-    yn = yc / zc
-    r2 = xn * xn + yn * yn
-    k1 = cam[17]
-    k2 = cam[18]
-    p1 = cam[19]
-    p2 = cam[20]
-    k3 = cam[21]
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-    return cam[12] * xd + cam[13] * yd + cam[14], cam[15] * yd + cam[16], zc
+    u, v = to_pixel(cam, xc / zc, yc / zc)
+    return u, v, zc
 
 
 def _silhouette_table():
@@ -846,14 +835,6 @@ _POOL = None
 # =====================================================================
 # validation and packing
 # =====================================================================
-def _pack_cameras(cameras):
-    rows = []
-    for c in cameras:
-        K = c.K
-        rows.append(np.concatenate([c.R.ravel(), c.t, [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]], c.dist]))
-    return np.ascontiguousarray(np.array(rows, dtype=np.float64))
-
-
 def _check_inputs(images, cameras, grid, masks):
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be an organlab.grid.VoxelGrid, got {type(grid).__name__}")
@@ -897,7 +878,7 @@ def _check_inputs(images, cameras, grid, masks):
             if m.shape != shape[:2]:
                 raise ValueError(f"mask {i} has shape {m.shape} but image {i} has (H, W) = {shape[:2]}")
             bg[i] = m == 0
-    return stack, cameras, _pack_cameras(cameras), bg
+    return stack, cameras, pack_cameras(cameras), bg
 
 
 def _check_occupancy(occupancy, grid):

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._nbcam import pack_camera
 from ..camera import Camera
 from ..grid import VoxelGrid
 
@@ -269,7 +270,7 @@ class _Engine:
             self._stats = np.zeros((n_tops, L + 1), dtype=np.int64)
         ax, ay, az = self.axes
         nbk.carve_view(
-            nbk.camera_params(camera), sat, camera.width, camera.height, ax, ay, az, self.counts, self.pyr,
+            pack_camera(camera), sat, camera.width, camera.height, ax, ay, az, self.counts, self.pyr,
             self.off, self.dims, L, self.tops, self.tol, self.min_pixels, self._deferred, self._ndef, self._stats,
         )
         ndef = self._ndef

@@ -28,21 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-# camera parameter vector layout
-# 0..8 R (row major), 9..11 t, 12 fx, 13 K01, 14 cx, 15 fy, 16 cy,
-# 17 k1, 18 k2, 19 p1, 20 p2, 21 k3, 22 |t|_1
-N_CP = 23
-
-
-def camera_params(camera):
-    cp = np.empty(N_CP)
-    cp[0:9] = camera.R.ravel()
-    cp[9:12] = camera.t
-    K = camera.K
-    cp[12], cp[13], cp[14], cp[15], cp[16] = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
-    cp[17:22] = camera.dist
-    cp[22] = np.abs(camera.t).sum()
-    return cp
+from .._nbcam import to_camera, to_pixel
 
 
 @njit(cache=True)
@@ -106,9 +92,7 @@ def _block_range(cp, ax, ay, az, x0, x1, y0, y1, z0, z1):
             Y = ay[y0] if b == 0 else ay[y1]
             for c in range(2):
                 Z = az[z0] if c == 0 else az[z1]
-                xc = cp[0] * X + cp[1] * Y + cp[2] * Z + cp[9]
-                yc = cp[3] * X + cp[4] * Y + cp[5] * Z + cp[10]
-                zc = cp[6] * X + cp[7] * Y + cp[8] * Z + cp[11]
+                xc, yc, zc = to_camera(cp, X, Y, Z)
                 mag = abs(X) + abs(Y) + abs(Z) + cp[22] + 1.0
                 if not zc > 1e-6 * mag:
                     return False, 0.0, 0.0, 0.0, 0.0
@@ -234,9 +218,7 @@ def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol,
             Y = ay[y0 + j]
             for k in range(z1 - z0 + 1):
                 Z = az[z0 + k]
-                xc = cp[0] * X + cp[1] * Y + cp[2] * Z + cp[9]
-                yc = cp[3] * X + cp[4] * Y + cp[5] * Z + cp[10]
-                zc = cp[6] * X + cp[7] * Y + cp[8] * Z + cp[11]
+                xc, yc, zc = to_camera(cp, X, Y, Z)
                 mag = abs(X) + abs(Y) + abs(Z) + cp[22] + 1.0
                 if zc > 1e-6 * mag:
                     S[i, j, k] = 1
@@ -248,17 +230,13 @@ def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol,
                     continue
                 x = xc / zc
                 y = yc / zc
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-                yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-                u = fx * xd + k01 * yd + cx
-                v = fy * yd + cy
+                u, v = to_pixel(cp, x, y)
                 U[i, j, k] = u
                 V[i, j, k] = v
                 if not (u == u and v == v):
                     S[i, j, k] = 0
                     continue
+                r2 = x * x + y * y
                 ar = 1.0 + abs(k1) * r2 + abs(k2) * r2 * r2 + abs(k3) * r2 * r2 * r2
                 ar += 3.0 * (abs(p1) + abs(p2)) * (1.0 + abs(x) + abs(y))
                 sc = (fx + abs(k01) + fy) * (1.0 + abs(x) + abs(y) + mag / zc) * ar + abs(cx) + abs(cy)

@@ -59,6 +59,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .._nbcam import pack_camera, to_camera, to_pixel
 from ..camera import Camera
 from ..grid import VoxelGrid
 
@@ -255,20 +256,17 @@ def _signed_distance(coverage, band, *, far_field=True):
 
 # --------------------------------------------------------- voxel accumulation
 @njit(cache=True, parallel=True)
-def _accumulate(sdf, P, extr, origin, vs, shape, best, seen, lim):
+def _accumulate(sdf, cp, origin, vs, shape, best, seen, lim):
     """Fold one view into the per-voxel ``k + 1`` smallest distances (mm).
 
-    ``P`` = ``[fx, skew*fx, cx, fy, cy]``, ``extr`` = ``[R (9), t (3), kc (5)]``.
+    ``cp`` is the packed camera (:func:`organlab._nbcam.pack_camera`).
     ``best`` is ``(N, k + 1)`` float32 sorted ascending per row.
     """
     h, w = sdf.shape
     nx, ny, nz = shape[0], shape[1], shape[2]
     kk = best.shape[1]
-    fx, fs, cx, fy, cy = P[0], P[1], P[2], P[3], P[4]
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = extr[0], extr[1], extr[2], extr[3], extr[4], extr[5], extr[6], extr[7], extr[8]
-    t0, t1, t2 = extr[9], extr[10], extr[11]
-    k1, k2, p1, p2, k3 = extr[12], extr[13], extr[14], extr[15], extr[16]
-    fxy = fx * fy
+    k1, k2, p1, p2, k3 = cp[17], cp[18], cp[19], cp[20], cp[21]
+    fxy = cp[12] * cp[15]
     for i in prange(nx):
         x = origin[0] + i * vs
         for j in range(ny):
@@ -279,19 +277,12 @@ def _accumulate(sdf, P, extr, origin, vs, shape, best, seen, lim):
                 if best[n, kk - 1] <= -lim:
                     continue  # already carved by k + 1 views: stays empty
                 z = origin[2] + k * vs
-                xc = r00 * x + r01 * y + r02 * z + t0
-                yc = r10 * x + r11 * y + r12 * z + t1
-                zc = r20 * x + r21 * y + r22 * z + t2
+                xc, yc, zc = to_camera(cp, x, y, z)
                 if zc <= 0.0:
                     continue
                 xn = xc / zc
                 yn = yc / zc
-                r2 = xn * xn + yn * yn
-                rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                xd = xn * rad + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
-                yd = yn * rad + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-                u = fx * xd + fs * yd + cx
-                v = fy * yd + cy
+                u, v = to_pixel(cp, xn, yn)
                 if not (u >= -0.5 and u <= w - 0.5 and v >= -0.5 and v <= h - 0.5):
                     continue  # outside the image: this view does not constrain it
                 # bilinear sample, clamped to the border pixel centres
@@ -305,6 +296,8 @@ def _accumulate(sdf, P, extr, origin, vs, shape, best, seen, lim):
                     (1.0 - a) * sdf[r0 + 1, c0] + a * sdf[r0 + 1, c0 + 1]
                 )
                 # local magnification of the projection (px per normalized unit)
+                r2 = xn * xn + yn * yn
+                rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
                 drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
                 j00 = rad + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn
                 j01 = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
@@ -431,10 +424,7 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
     for i, (cov, cam) in enumerate(zip(coverages, cameras)):
         band, far_field = _band_px(cam, grid)
         sdf = _signed_distance(cov, band, far_field=far_field)
-        K = cam.K
-        P = np.array([K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]])
-        extr = np.concatenate([cam.R.ravel(), cam.t, cam.dist])
-        _accumulate(sdf, P, extr, origin, float(grid.voxel_size), shape, best, seen, np.float32(lim))
+        _accumulate(sdf, pack_camera(cam), origin, float(grid.voxel_size), shape, best, seen, np.float32(lim))
         if progress is not None:
             progress(i + 1, len(cameras))
     m = best[:, tolerance].astype(np.float64)

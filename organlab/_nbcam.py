@@ -1,0 +1,67 @@
+"""Private numba kernels: :meth:`organlab.camera.Camera.project` for one point.
+
+The voxel kernels (:mod:`organlab.carving`, :mod:`organlab.coloring`) project
+millions of points one at a time inside numba loops; they share the camera
+packing and the projection written here, term for term as in
+:mod:`organlab.camera` (same floating-point operations, same order), so that
+they agree with :meth:`Camera.project` to rounding.
+
+Packed camera, ``(N_CP,)`` float64::
+
+    0..8   R, world to camera, row major
+    9..11  t, mm
+    12..16 fx, K[0, 1] (= alpha_c * fx), cx, fy, cy, px
+    17..21 k1, k2, p1, p2, k3
+    22     |t|_1, mm (scale of the camera-frame coordinates, for error bounds)
+
+Note: numba's on-disk cache does not notice edits of this module in the
+kernels that inline it; clear ``__pycache__`` after changing it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+N_CP = 23
+
+
+def pack_camera(camera):
+    """One :class:`~organlab.camera.Camera` as a ``(N_CP,)`` float64 vector."""
+    cp = np.empty(N_CP)
+    cp[0:9] = camera.R.ravel()
+    cp[9:12] = camera.t
+    K = camera.K
+    cp[12], cp[13], cp[14], cp[15], cp[16] = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    cp[17:22] = camera.dist
+    cp[22] = np.abs(camera.t).sum()
+    return cp
+
+
+def pack_cameras(cameras):
+    """Cameras as a C-contiguous ``(V, N_CP)`` float64 array."""
+    return np.ascontiguousarray(np.array([pack_camera(c) for c in cameras], dtype=np.float64).reshape(-1, N_CP))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def to_camera(cp, x, y, z):
+    """World point (mm) to the camera frame: ``R @ X + t``."""
+    xc = cp[0] * x + cp[1] * y + cp[2] * z + cp[9]
+    yc = cp[3] * x + cp[4] * y + cp[5] * z + cp[10]
+    zc = cp[6] * x + cp[7] * y + cp[8] * z + cp[11]
+    return xc, yc, zc
+
+
+@njit(cache=True, nogil=True, inline="always")
+def to_pixel(cp, xn, yn):
+    """Undistorted normalized coordinates ``(X/Z, Y/Z)`` to pixels ``(u, v)``.
+
+    Bouguet's distortion then ``K``, as :func:`organlab.camera.distort` and
+    ``Camera._project_cam``.
+    """
+    k1, k2, p1, p2, k3 = cp[17], cp[18], cp[19], cp[20], cp[21]
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+    return cp[12] * xd + cp[13] * yd + cp[14], cp[15] * yd + cp[16]
