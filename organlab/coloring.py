@@ -525,8 +525,11 @@ def _nb_clear(v, m, C, n_vis, n_tot, sums, sq, bgcnt, cnt):
 
 
 @nb.njit(cache=True, nogil=True)
-def _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, use_buf, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
+def _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
     """Per view and voxel of one layer: counts and sums of the footprint's pixels.
+
+    A pixel is visible to a voxel if it is unmarked and the voxel owns it in
+    the layer's item buffer ``zbuf`` / ``obuf`` (or lies in front of its owner).
 
     ab : (M, 2) in-layer indices relative to the corner origin ``o``.
     Outputs (V, M[, C]): n_vis (unmarked, non-background footprint pixels),
@@ -553,7 +556,7 @@ def _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cam
             code = _nb_layer_code(centres[v], o, en, dims, ab[m, 0], ab[m, 1])
             n, c0, c1, r0, r1, fu, fv = _nb_hull(px, py, code, W, H, ex, ey, ec)
             depth = _nb_layer_depth(cams[v], o, ea, eb, en, ab[m, 0], ab[m, 1])
-            _nb_accumulate(images[v], marks[v], bgv, use_bg, 0, m, zbuf[v], obuf[v], use_buf, depth, ex, ey, ec, n, c0, c1, r0, r1, fu, fv, out)
+            _nb_accumulate(images[v], marks[v], bgv, use_bg, 0, m, zbuf[v], obuf[v], True, depth, ex, ey, ec, n, c0, c1, r0, r1, fu, fv, out)
             _nb_store(out, v, m, C, n_vis, n_tot, sums, sq, bgcnt, cnt)
 
 
@@ -703,12 +706,10 @@ def _nb_layer_background(v0, v1, needed, ab, proj, ok, o, ea, eb, en, dims, cent
 
 
 @nb.njit(cache=True, nogil=True)
-def _nb_layer_pass(v0, v1, project, needed, ab, keep, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, box, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
-    """One test of a layer in views v0..v1-1: (project the corners,) item buffer of the kept voxels, statistics."""
-    if project:
-        _nb_project_layer(v0, v1, needed, o, ea, eb, en, cams, proj, ok)
+def _nb_layer_pass(v0, v1, ab, keep, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, box, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt):
+    """One test of a layer in views v0..v1-1 (corners already in ``proj``): item buffer of the kept voxels, statistics."""
     _nb_layer_buffer(v0, v1, ab, keep, proj, ok, o, ea, eb, en, dims, centres, cams, zbuf, obuf, box)
-    _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, True, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt)
+    _nb_layer_stats(v0, v1, ab, sel, proj, ok, o, ea, eb, en, dims, centres, cams, images, marks, zbuf, obuf, bg, use_bg, n_vis, n_tot, sums, sq, bgcnt, cnt)
     _nb_clear_buffer(v0, v1, zbuf, obuf, box)
 
 
@@ -1111,7 +1112,8 @@ def color_voxels(
         Candidates: the hull's voxels, or every voxel of the grid.
     completeness : None, int >= 1 or float in (0, 1)
         Voxels with fewer visible pixels (a count, or a fraction of their
-        in-image footprint pixels) are kept untested.
+        in-image, non-background footprint pixels over all views) are kept
+        untested.
     masks : sequence of (H, W) bool, optional
         Silhouettes (True = specimen).  Background pixels are never used for
         colours; a voxel seen mostly through background in a view is carved.
@@ -1139,6 +1141,13 @@ def color_voxels(
     ------
     VisibilityConstraintError
         ``method="voxel_coloring"`` with cameras that allow no layered sweep.
+    ValueError
+        Mismatched numbers of images, cameras and masks, an image that is not
+        ``(H, W)`` / ``(H, W, 3)`` uint8 or not its camera's size, an
+        occupancy that is not bool of ``grid.shape``, or an invalid option.
+    TypeError
+        A camera that is not a :class:`~organlab.camera.Camera` or a grid that
+        is not a :class:`~organlab.grid.VoxelGrid`.
     """
     t0 = time.perf_counter()
     stack, cameras, cams, bg = _check_inputs(images, cameras, grid, masks)
@@ -1189,7 +1198,7 @@ def _bg_arg(bg):
     return (bg, True) if bg is not None else (np.zeros((1, 1, 1), np.uint8), False)
 
 
-def _occlusion_reach(cameras, lo, hi, axis, descending, h):
+def _occlusion_reach(cameras, lo, hi, axis, descending):
     """How far (voxels, in-layer chessboard distance) a ray crossing one layer travels sideways.
 
     A pixel ray through a voxel of layer k reaches layer k - 1 (toward the
@@ -1243,7 +1252,7 @@ def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measu
     box = np.empty((V, 4), np.int64)
     n_layers = grid.shape[axis]
     order = range(n_layers - 1, -1, -1) if descending else range(n_layers)
-    reach = _occlusion_reach(cameras, lo, hi, axis, descending, h)
+    reach = _occlusion_reach(cameras, lo, hi, axis, descending)
     prev = None  # occupancy of the previous layer, in-layer axes (a, b)
     for step, layer in enumerate(order):
         sub = np.take(candidates, layer, axis=axis)
@@ -1288,12 +1297,11 @@ def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measu
             for _ in range(1 + _REFINE):
                 st = _Stats(V, len(ab), C)
                 _over_views(
-                    _nb_layer_pass, V, False, needed, ab, render, test, proj, ok, corner, ea, eb, en, dims, centres,
+                    _nb_layer_pass, V, ab, render, test, proj, ok, corner, ea, eb, en, dims, centres,
                     cams, stack, marks, zbuf, obuf, box, bg_arr, use_bg, *st.arrays(),
                 )
                 st.pool()
                 full = st if full is None else full.merge(st, test)
-                full.ijk = ijk
                 bad, seen, tested = full.decide(threshold, measure, min_pix, min_frac)
                 bad = _support_2d(ab, na, nb_, bad, support)
                 carve = bad | seen_through
@@ -1305,7 +1313,6 @@ def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measu
                 test = _within(ab, na, nb_, changed, None if reach is None else reach + 1)
                 render = keep & _within(ab, na, nb_, changed, None if reach is None else 2 * reach + 2)
             st = full
-            keep = ~carve
             if keep.any():
                 _over_views(_nb_layer_mark, V, ab, keep, proj, ok, corner, ea, eb, en, dims, centres, cams, marks)
             if _DEBUG is not None:
