@@ -253,9 +253,8 @@ class _Engine:
         self.pyr = np.zeros(int(sizes.sum()), dtype=np.int64)
         self.counts = np.zeros(grid.shape, dtype=np.uint16)
         nbk.build_pyramid(self.counts, self.pyr, self.off, self.dims, L, self.tol)
-        self.tops = np.indices(self.dims[L]).reshape(3, -1).T.astype(np.int64).copy()
+        self.tops = np.indices(self.dims[L]).reshape(3, -1).T.astype(np.int64)
         self._deferred = None
-        self.n_deferred = 0
 
     def apply(self, mask, camera):
         nbk = self._nbk
@@ -267,26 +266,17 @@ class _Engine:
         if self._deferred is None:
             self._deferred = np.empty(n_tops * cap, dtype=np.int64)
             self._ndef = np.zeros(n_tops, dtype=np.int64)
-            self._stats = np.zeros((n_tops, L + 1), dtype=np.int64)
         ax, ay, az = self.axes
         nbk.carve_view(
             pack_camera(camera), sat, camera.width, camera.height, ax, ay, az, self.counts, self.pyr,
-            self.off, self.dims, L, self.tops, self.tol, self.min_pixels, self._deferred, self._ndef, self._stats,
+            self.off, self.dims, L, self.tops, self.tol, self.min_pixels, self._deferred, self._ndef,
         )
         ndef = self._ndef
         (which,) = np.nonzero(ndef)
         if which.size:
             flat = np.concatenate([self._deferred[t * cap : t * cap + ndef[t]] for t in which])
-            self.n_deferred += flat.size
             carved = _exact_carved(flat, self.grid, self.axes, sat, camera, self.min_pixels)
             nbk.kill_many(self.counts, self.pyr, self.off, self.dims, L, flat[carved], self.tol)
-
-    @property
-    def stats(self):
-        """Blocks tested per level so far (diagnostics), (L + 1,) int64."""
-        if self._deferred is None:
-            return np.zeros(self.L + 1, dtype=np.int64)
-        return self._stats.sum(axis=0)
 
     @property
     def occupancy(self):

@@ -301,12 +301,11 @@ def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol,
 
 
 @njit(cache=True, parallel=True)
-def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, min_pixels, deferred, ndef, stats):
+def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, min_pixels, deferred, ndef):
     """Apply one view to every alive voxel; fill ``deferred`` with undecided ones.
 
     tops : (n, 3) int64 indices of the top blocks (level L) to visit.
     deferred : per top block ``t`` the slots ``[t * 8**L, ...)``, count in ndef[t].
-    stats : (n, L + 1) int64, blocks tested per level (diagnostics).
     """
     allow_keep = min_pixels <= 1
     nx, ny, nz = counts.shape
@@ -337,7 +336,6 @@ def carve_view(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, tops, tol, 
             x1 = min(x0 + (1 << l), nx)
             y1 = min(y0 + (1 << l), ny)
             z1 = min(z0 + (1 << l), nz)
-            stats[t, l] += 1
             ok, c0, c1, r0, r1 = _block_range(cp, ax, ay, az, x0, x1, y0, y1, z0, z1)
             dec = 2
             if ok:

@@ -61,7 +61,7 @@ from numba import njit, prange
 
 from .._nbcam import pack_camera, to_camera, to_pixel
 from ..camera import Camera
-from ..grid import VoxelGrid
+from ._bbox import _check_grid
 
 __all__ = ["hull_field"]
 
@@ -398,8 +398,7 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
     bytes per voxel.  Time: about a second for 36 views of 640 x 480 px and
     1.2 M voxels (numba, 2 cores).
     """
-    if not isinstance(grid, VoxelGrid):
-        raise TypeError(f"grid must be an organlab.grid.VoxelGrid, got {type(grid).__name__}")
+    _check_grid(grid)
     if isinstance(silhouettes, np.ndarray) and silhouettes.ndim == 2:
         silhouettes = [silhouettes]
     cameras = [cameras] if isinstance(cameras, Camera) else list(cameras)
