@@ -19,6 +19,10 @@ DIFFUSE = 0.22
 # Unit vector toward the light, camera frame (upper left, behind the camera).
 LIGHT_CAM = np.array([-0.35, -0.6, -1.0]) / np.linalg.norm([-0.35, -0.6, -1.0])
 
+# Albedo (grey level) of the board's black and white squares.
+BOARD_BLACK = 28.0
+BOARD_WHITE = 212.0
+
 # Turntable plate: a disk, top at z = 0, side down to PLATE_BOTTOM.
 PLATE_RADIUS = 125.0
 PLATE_BOTTOM = -14.0
@@ -119,7 +123,7 @@ def plate_hits(o, d):
     return t, albedo, normal
 
 
-def board_hits(o, d, R_board, t_board, inner_corners, square, margin, *, black=28.0, white=212.0):
+def board_hits(o, d, R_board, t_board, inner_corners, square, margin):
     """Hits of rays with a printed checkerboard (a zero-thickness rectangle).
 
     The board frame has the inner corners at ``(i * square, j * square, 0)``;
@@ -146,7 +150,7 @@ def board_hits(o, d, R_board, t_board, inner_corners, square, margin, *, black=2
     b = np.floor(y / s).astype(np.int64) + 1
     in_squares = (a >= 0) & (a <= n_x) & (b >= 0) & (b <= n_y)
     is_black = in_squares & ((a + b) % 2 == 0)
-    g = np.where(is_black, black, white)
+    g = np.where(is_black, BOARD_BLACK, BOARD_WHITE)
     idx = np.flatnonzero(hit)
     t_out = np.full(d.shape[0], np.inf)
     t_out[idx[on]] = t[idx[on]]

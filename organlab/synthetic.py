@@ -23,11 +23,14 @@ folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 from . import _render
-from .camera import Camera, rot_z
-from .session import Pattern
+from .camera import Camera, _as_points, rot_z
+from .session import FORMAT, Pattern, write_json
 
 __all__ = [
     "DEFAULT_PATTERN",
@@ -106,9 +109,7 @@ def _look_at(centre, target, *, roll_deg=0.0, up=(0.0, 0.0, 1.0)):
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])  # rows: camera axes in world coordinates
-    a = np.deg2rad(roll_deg)
-    Rroll = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    return Rroll @ R
+    return rot_z(roll_deg) @ R  # roll about the optical axis
 
 
 # ------------------------------------------------------------------- board
@@ -263,7 +264,6 @@ def intrinsic_board_poses(camera, n, *, pattern=None, seed=0, max_tilt_deg=45.0)
         out_pts = squares @ R.T + t
         if np.any(cam_pts[:, 2] <= 50) or np.any(out_pts[:, 2] <= 50):
             continue
-        uv = cam0.project(cam_pts)
         uvo = cam0.project(out_pts)
         # every square inside the image (the white margin may be cut by the border)
         if not (np.all(uvo[:, 0] >= 2) and np.all(uvo[:, 0] <= w - 3) and np.all(uvo[:, 1] >= 2) and np.all(uvo[:, 1] <= h - 3)):
@@ -410,7 +410,7 @@ class Specimen:
 
     def inside(self, points):
         """Membership test: ``(N,)`` bool for ``points (N, 3)`` mm, world frame (boundary counts as inside)."""
-        p = _as_points3(points)
+        p = _as_points(points)
         return self._inside(p)
 
     def albedo(self, points):
@@ -432,23 +432,14 @@ class Specimen:
         normals : (N, 3) float64
             Outward unit normals at the hits (zeros for misses).
         """
-        o = _as_points3(origins)
-        d = _as_points3(directions)
+        o = _as_points(origins, "origins")
+        d = _as_points(directions, "directions")
         if o.shape != d.shape:
             o = np.broadcast_to(o, d.shape)
         return self._intersect(o, d, t_max=None)
 
     def __repr__(self):
         return f"{type(self).__name__}(name={self.name!r}, volume={self.volume:.6g} mm^3)"
-
-
-def _as_points3(points):
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim == 1 and p.shape[0] == 3:
-        p = p[None]
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {p.shape}")
-    return p
 
 
 def _tmax(t_max, n):
@@ -834,8 +825,6 @@ def _write_image(path, image, *, fmt="png", quality=95):
 
 def _remove_previous_images(out):
     """Delete the images of a session this generator wrote before in ``out`` (and only those)."""
-    import json
-
     sj = out / "session.json"
     if not sj.is_file():
         return
@@ -886,7 +875,9 @@ def make_session(
     Parameters
     ----------
     out_dir : str or Path
-        The session folder (created; existing images of the same names are overwritten).
+        The session folder (created).  Images that a previous run of this
+        generator listed in its ``session.json`` there are deleted first;
+        other files are left alone.
     seed : int
     specimen : {"aaa", "grooved"} or Specimen
     image_size : (2,) int
@@ -920,10 +911,6 @@ def make_session(
         ``board`` poses, ``seed``, ``noise_sigma``, ``session_json`` (the
         dict written).
     """
-    from pathlib import Path
-
-    from .session import FORMAT, write_json
-
     out = Path(out_dir)
     for label, value in (("n_views", n_views), ("n_intrinsic", n_intrinsic), ("n_turntable", n_turntable), ("n_background", n_background)):
         if int(value) < 0:
@@ -970,25 +957,23 @@ def make_session(
         turntable.append({"image": rel, "angle_deg": a})
 
     # background frames: the empty scene
-    ext_bg = "png" if background_format == "png" else "jpg"
     background = []
     if n_background:
         empty = _render.render(cam, supersample=int(supersample))
         for i in range(int(n_background)):
-            rel = f"background/{i:02d}.{ext_bg}"
-            _write_image(out / rel, _render.quantize(empty, noise_sigma, rng(3, i)), fmt=ext_bg, quality=jpeg_quality)
+            rel = f"background/{i:02d}.{background_format}"
+            _write_image(out / rel, _render.quantize(empty, noise_sigma, rng(3, i)), fmt=background_format, quality=jpeg_quality)
             background.append(rel)
 
     # views of the specimen
-    ext_v = "png" if view_format == "png" else "jpg"
     views = []
     views_truth = []
     for i in range(int(n_views)):
         a = float(360.0 * i / n_views)
         cam_a = cam.at_table_angle(a)
         img = _render.render(cam_a, supersample=int(supersample), specimen=spec)
-        rel = f"views/{int(round(a * 10)):04d}.{ext_v}" if a != int(a) else f"views/{int(a):03d}.{ext_v}"
-        _write_image(out / rel, _render.quantize(img, noise_sigma, rng(4, i)), fmt=ext_v, quality=jpeg_quality)
+        rel = f"views/{int(round(a * 10)):04d}.{view_format}" if a != int(a) else f"views/{int(a):03d}.{view_format}"
+        _write_image(out / rel, _render.quantize(img, noise_sigma, rng(4, i)), fmt=view_format, quality=jpeg_quality)
         entry = {"image": rel, "angle_deg": a}
         if include_poses:
             entry["pose"] = {"R": cam_a.R.tolist(), "t": cam_a.t.tolist()}
@@ -1048,7 +1033,6 @@ def main(argv=None):
     """``python -m organlab.synthetic OUT [--seed N] [--specimen aaa|grooved] [--small]``."""
     import argparse
     import time
-    from pathlib import Path
 
     ap = argparse.ArgumentParser(prog="python -m organlab.synthetic", description="Write a synthetic organlab session folder.")
     ap.add_argument("out", help="session folder to write")
