@@ -17,6 +17,7 @@ the same camera model as organlab (:class:`~organlab.camera.Camera`):
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -33,7 +34,7 @@ __all__ = [
     "read_camera",
 ]
 
-_ASSIGN = re.compile(r"^\s*([A-Za-z_]\w*)\s*=\s*(.+?)\s*;?\s*(?:%.*)?$")
+_ASSIGN = re.compile(r"^\s*([A-Za-z_]\w*)\s*=\s*(.+?)\s*;?\s*$")  # on a line stripped of its % comment
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:Inf|NaN)"
 
 
@@ -244,8 +245,9 @@ def read_opencv(path):
         if not node.empty():
             extra["avg_reprojection_error"] = float(node.real())
         node = fs.getNode("per_view_reprojection_errors")
-        if not node.empty() and node.mat() is not None:
-            extra["per_view_reprojection_errors"] = np.asarray(node.mat(), float).ravel()
+        per_view = None if node.empty() else node.mat()
+        if per_view is not None:
+            extra["per_view_reprojection_errors"] = np.asarray(per_view, float).ravel()
     finally:
         fs.release()
     try:
@@ -309,8 +311,6 @@ def read_camera(path, *, image_size=None):
     if suffix in (".yml", ".yaml", ".xml"):
         return read_opencv(path)[0]
     if suffix == ".json":
-        import json
-
         try:
             d = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError) as e:
