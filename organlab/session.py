@@ -165,6 +165,16 @@ def read_image(path, *, size=None, key="image", grey=False, session=None):
     return img
 
 
+def _image_at_angle(item, key, where, hint):
+    """Validate ``{'image': path, 'angle_deg': number}``; return ``(path, angle)``."""
+    if not isinstance(item, dict) or not isinstance(item.get("image"), str):
+        _fail(where, key, "must be {'image': path, 'angle_deg': number, ...}")
+    a = item.get("angle_deg")
+    if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a):
+        _fail(where, key + ".angle_deg", f"is missing or not a number; {hint}")
+    return item["image"], float(a)
+
+
 def _image_list(raw, key, root, where):
     items = raw
     if not isinstance(items, list) or not all(isinstance(s, str) for s in items):
@@ -258,13 +268,8 @@ def load_session(path, *, check_images=True):
         _fail(sj, "calibration.turntable_images", "must be a list of {'image': ..., 'angle_deg': ...}")
     turntable = []
     for i, item in enumerate(tt_raw):
-        key = f"calibration.turntable_images[{i}]"
-        if not isinstance(item, dict) or not isinstance(item.get("image"), str):
-            _fail(sj, key, "must be {'image': path, 'angle_deg': number}")
-        a = item.get("angle_deg")
-        if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a):
-            _fail(sj, key + ".angle_deg", "is missing or not a number; give the table angle of every turntable image")
-        turntable.append((root / item["image"], float(a)))
+        image, a = _image_at_angle(item, f"calibration.turntable_images[{i}]", sj, "give the table angle of every turntable image")
+        turntable.append((root / image, a))
     background = _image_list(raw.get("background_images", []), "background_images", root, sj)
 
     # --- camera
@@ -302,11 +307,7 @@ def load_session(path, *, check_images=True):
     views = []
     for i, v in enumerate(views_raw):
         key = f"views[{i}]"
-        if not isinstance(v, dict) or not isinstance(v.get("image"), str):
-            _fail(sj, key, "must be {'image': path, 'angle_deg': number, ...}")
-        a = v.get("angle_deg")
-        if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a):
-            _fail(sj, key + ".angle_deg", "is missing or not a number")
+        image, a = _image_at_angle(v, key, sj, "give the table angle of every view")
         pose = None
         if v.get("pose") is not None:
             p = v["pose"]
@@ -322,7 +323,7 @@ def load_session(path, *, check_images=True):
             if not isinstance(v["mask"], str):
                 _fail(sj, key + ".mask", "must be an image path")
             mask = root / v["mask"]
-        views.append(View(root / v["image"], float(a), pose, mask))
+        views.append(View(root / image, a, pose, mask))
 
     # --- what each view needs
     have_intrinsics = camera is not None or bool(intrinsic) or calibration is not None
