@@ -184,7 +184,9 @@ def reconstruct(
 
     bar = progress("silhouettes")
     t0 = time.perf_counter()
-    sils = session_silhouettes(session, threshold=threshold, progress=bar)
+    # read once: colouring needs the same images
+    images = [session.read(v.image, key=f"views[{i}].image") for i, v in enumerate(session.views)]
+    sils = session_silhouettes(session, images=images, threshold=threshold, progress=bar)
     timings["silhouettes"] = time.perf_counter() - t0
     bar.close()
 
@@ -214,7 +216,6 @@ def reconstruct(
     if method != "hull":
         from . import coloring
 
-        images = [session.read(v.image, key=f"views[{i}].image") for i, v in enumerate(session.views)]
         bar = progress("coloring")
         t0 = time.perf_counter()
         kw = {} if color_threshold is None else {"threshold": color_threshold}

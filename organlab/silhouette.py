@@ -329,7 +329,9 @@ def silhouette(image, background, *, threshold=None, mode="color", floor=0.0, **
     return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
 
 
-def session_silhouettes(session, *, threshold=None, mode="color", background="median", progress=None, **clean):
+def session_silhouettes(
+    session, *, images=None, threshold=None, mode="color", background="median", progress=None, **clean
+):
     """Silhouettes of every view of a session.
 
     A view with a ``mask`` in ``session.json`` uses it as given (non-zero =
@@ -339,6 +341,9 @@ def session_silhouettes(session, *, threshold=None, mode="color", background="me
     Parameters
     ----------
     session : Session
+    images : sequence of (H, W) or (H, W, 3) uint8, optional
+        The views' images, already read (one per view); read from the session
+        when omitted.
     threshold : float, optional
         Grey levels, the same for every view; :func:`auto_threshold` per view when omitted.
     mode : {'color', 'grey'}
@@ -349,9 +354,11 @@ def session_silhouettes(session, *, threshold=None, mode="color", background="me
     -------
     list of Silhouette, one per view
     """
+    n = len(session.views)
+    if images is not None and len(images) != n:
+        raise ValueError(f"got {len(images)} images for {n} views")
     bg = None
     out = []
-    n = len(session.views)
     for i, view in enumerate(session.views):
         if view.mask is not None:
             m = session.read(view.mask, key=f"views[{i}].mask", grey=True) > 0
@@ -361,7 +368,7 @@ def session_silhouettes(session, *, threshold=None, mode="color", background="me
                 frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
                 bg = background_model(frames, method=background)
                 floor = 5.0 * background_noise(frames)
-            img = session.read(view.image, key=f"views[{i}].image")
+            img = images[i] if images is not None else session.read(view.image, key=f"views[{i}].image")
             try:
                 out.append(silhouette(img, bg, threshold=threshold, mode=mode, floor=floor, **clean))
             except ValueError as e:
