@@ -3,7 +3,7 @@
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
                          [--method hull|coloring|space_carving] [--color-threshold X]
     organlab calibrate SESSION [--figures DIR]
-    organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small]
+    organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -58,11 +58,9 @@ def _parser():
                    help="where to write the check figures (default SESSION/calibration_check)")
     c.add_argument("--quiet", action="store_true")
 
-    s = sub.add_parser("synth", help="generate a synthetic session (rendered phantom, boards, background)")
-    s.add_argument("out", type=Path)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--specimen", default="aaa")
-    s.add_argument("--small", action="store_true", help="small images and few views (fast)")
+    s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
+                       "'organlab synth --help' lists its options)")
+    s.add_argument("args", nargs=argparse.REMAINDER)
     return p
 
 
@@ -120,20 +118,19 @@ def _calibrate(a):
     return 0
 
 
-def _synth(a):
-    from .synthetic import make_session
+def _synth(argv):
+    from .synthetic import main as synth_main
 
-    kw = {"seed": a.seed, "specimen": a.specimen}
-    if a.small:
-        kw.update(image_size=(320, 240), n_views=12, n_intrinsic=8, n_turntable=6, n_background=5)
-    make_session(a.out, **kw)
-    print(f"organlab synth: wrote {a.out}")
-    return 0
+    return synth_main(argv)
 
 
 def main(argv=None):
-    args = _parser().parse_args(argv)
-    handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "synth": _synth}[args.command]
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["synth"]:  # its own parser (python -m organlab.synthetic), options and --help included
+        args, handler = argv[1:], _synth
+    else:
+        args = _parser().parse_args(argv)
+        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

@@ -1034,7 +1034,7 @@ def main(argv=None):
     import argparse
     import time
 
-    ap = argparse.ArgumentParser(prog="python -m organlab.synthetic", description="Write a synthetic organlab session folder.")
+    ap = argparse.ArgumentParser(prog="organlab synth", description="Write a synthetic organlab session folder.")
     ap.add_argument("out", help="session folder to write")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--specimen", choices=["aaa", "grooved"], default="aaa")

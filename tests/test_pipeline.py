@@ -198,3 +198,13 @@ def test_coloring_method_writes_colors_and_carves_hidden_grooves(tmp_path):
     # vertex colours follow the specimen's texture (shading darkens them a little): measured 18 levels
     err = np.abs(mesh.vertex_colors.astype(float) - spec.albedo(mesh.vertices)).mean()
     assert err < 30
+
+
+def test_cli_synth_writes_a_loadable_session(tmp_path, capsys):
+    out = tmp_path / "small"
+    assert main(["synth", str(out), "--small", "--specimen", "grooved", "--seed", "1"]) == 0
+    assert "grooved volume" in capsys.readouterr().out
+    s = load_session(out)
+    assert s.image_size == (320, 240) and len(s.views) == 12
+    truth = json.loads((out / "truth.json").read_text())
+    assert s.reference["volume_mm3"] == truth["volume_mm3"]
