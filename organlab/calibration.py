@@ -446,7 +446,12 @@ class IntrinsicCalibration:
             uncertainty_note="std: one standard deviation; uncertainty_3sigma: three (Bouguet's +/-)",
             fixed=list(self.fixed),
             images={
-                n: {"rms_px": self.per_image_rms[n], "rvec": self.extrinsics[n][0].tolist(), "tvec": self.extrinsics[n][1].tolist()}
+                n: {
+                    "rms_px": self.per_image_rms[n],
+                    "rvec": self.extrinsics[n][0].tolist(),
+                    "tvec": self.extrinsics[n][1].tolist(),
+                    **_corners_entry(self.corners, n),
+                }
                 for n in self.per_image_rms
             },
             rejected=dict(self.rejected),
@@ -813,7 +818,10 @@ class TurntableCalibration:
             "t_cam": self.camera.t.tolist(),
             "rms_px": self.rms_px,
             "n_images": len(self.per_image_rms) - len(self.flagged),
-            "images": {n: {"angle_deg": self.angles_deg[n], "rms_px": r, "flagged": n in self.flagged} for n, r in self.per_image_rms.items()},
+            "images": {
+                n: {"angle_deg": self.angles_deg[n], "rms_px": r, "flagged": n in self.flagged, **_corners_entry(self.corners, n)}
+                for n, r in self.per_image_rms.items()
+            },
             "flagged": list(self.flagged),
             "rejected": dict(self.rejected),
             "axis": {
@@ -1093,7 +1101,8 @@ def calibrate_session(session, *, progress=None):
     dict
         ``camera``: ``K``, ``dist``, ``image_size``, ``rms_px`` (None when the
         intrinsics were given), ``source``, and for a fit ``std``,
-        ``uncertainty_3sigma``, per-image ``images`` (RMS, board pose) and
+        ``uncertainty_3sigma``, per-image ``images`` (RMS, board pose,
+        detected corners ``corners_px``) and
         ``rejected``; ``turntable`` (when turntable images are given):
         ``R_cam``, ``t_cam``, ``rms_px``, per-image ``images``, ``flagged``,
         ``rejected``, ``axis``, ``std``; ``pattern``.
@@ -1209,6 +1218,19 @@ def _fig_name(name):
     return stem.replace("/", "_") + ".png"
 
 
+def _corners_entry(corners, name):
+    """``{"corners_px": [[u, v], ...]}`` for calibration.json, or ``{}``."""
+    c = corners.get(name)
+    return {} if c is None else {"corners_px": np.round(np.asarray(c, float).reshape(-1, 2), 4).tolist()}
+
+
+def _stored_corners(entry):
+    """The detected corners kept in calibration.json for one image, or None."""
+    if not entry or "corners_px" not in entry:
+        return None
+    return np.asarray(entry["corners_px"], dtype=np.float64).reshape(-1, 2)
+
+
 def check_figures(session, calib, out_dir):
     """Draw detected (+, green) and reprojected (o, red) corners over every calibration image.
 
@@ -1221,7 +1243,10 @@ def check_figures(session, calib, out_dir):
     ----------
     session : Session
     calib : dict
-        From :func:`calibrate_session` (or ``calibration.json``).
+        From :func:`calibrate_session` (or ``calibration.json``).  The
+        detected corners it keeps per image (``corners_px``) are drawn as
+        they are; an image without them (rejected, or an older file) is
+        detected again.
     out_dir : str or Path
         Created when missing; one PNG per calibration image.
 
@@ -1251,7 +1276,9 @@ def check_figures(session, calib, out_dir):
         for pth in session.intrinsic_images:
             name = session.relpath(pth)
             img = session.read(pth, key="calibration.intrinsic_images", grey=False)
-            det = detect_board(img, pattern)
+            det = _stored_corners(per.get(name))
+            if det is None:
+                det = detect_board(img, pattern)
             rep = None
             lines = [f"intrinsic {name}"]
             if name in per:
@@ -1279,7 +1306,9 @@ def check_figures(session, calib, out_dir):
             name = session.relpath(pth)
             img = session.read(pth, key="calibration.turntable_images", grey=False)
             cam = cam0.at_table_angle(angle)
-            det = detect_board(img, pattern, require_orientation=True)
+            det = _stored_corners(images.get(name))
+            if det is None:
+                det = detect_board(img, pattern, require_orientation=True)
             rep = cam.project(X0)
             circ = cam.project(circle)
             ax = cam.project(axis_pts)

@@ -376,6 +376,17 @@ def test_calibrate_session_rendered(rendered_session, tmp_path):
     reloaded = load_session(root)
     assert path == root / "calibration.json"
     np.testing.assert_allclose(reloaded.calibration["turntable"]["R_cam"], R_cam)
+    # calibration.json keeps each image's detected corners: the figures draw them without detecting again
+    saved = reloaded.calibration
+    for entries in (saved["camera"]["images"], saved["turntable"]["images"]):
+        for name, e in entries.items():
+            corners = np.asarray(e["corners_px"])
+            assert corners.shape == (54, 2)
+            truth_cam = truth.at_table_angle(e["angle_deg"]) if "angle_deg" in e else None
+            if truth_cam is not None:  # turntable image: the corners are where the true camera sees the board
+                R_b, t_b = S.turntable_board_pose(PAT)
+                uv = truth_cam.project(S.board_object_points(PAT) @ R_b.T + t_b)
+                assert np.sqrt(((corners - uv) ** 2).sum(1).mean()) < 0.2
 
     figs = check_figures(session, calib, tmp_path / "figs")
     assert len(figs) == N_INTR + 6 and all(f.is_file() for f in figs)
