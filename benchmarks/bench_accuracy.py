@@ -7,35 +7,22 @@ cameras calibrated from the session's images and once with the true cameras
 from ``truth.json``.  Run: ``.venv/bin/python benchmarks/bench_accuracy.py``.
 """
 
-import json
 import shutil
 import tempfile
 from pathlib import Path
 
 from organlab import load_session
 from organlab.pipeline import reconstruct
+from organlab.synthetic import with_true_cameras
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
-
-
-def _with_true_cameras(tmp):
-    """A copy of the sample whose session.json gives the true camera and poses."""
-    root = Path(tmp) / "true_cameras"
-    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("calibration.json", "calibration_check"))
-    truth = json.loads((root / "truth.json").read_text())
-    doc = json.loads((root / "session.json").read_text())
-    doc["camera"] = {"K": truth["camera"]["K"], "dist": truth["camera"]["dist"]}
-    for v, tv in zip(doc["views"], truth["views"]):
-        v["pose"] = {"R": tv["R"], "t": tv["t"]}
-    (root / "session.json").write_text(json.dumps(doc))
-    return root
 
 
 def main():
     with tempfile.TemporaryDirectory() as tmp:
         calibrated = Path(tmp) / "calibrated"
         shutil.copytree(SAMPLE, calibrated, ignore=shutil.ignore_patterns("calibration.json", "calibration_check"))
-        sessions = {"calibrated": calibrated, "true": _with_true_cameras(tmp)}
+        sessions = {"calibrated": calibrated, "true": with_true_cameras(SAMPLE, Path(tmp) / "true_cameras")}
         print(f"{'cameras':<11} {'hull':<9} {'voxel':>6} {'voxel vol err':>14} {'mesh vol err':>13}  timings (s)")
         for label, root in sessions.items():
             for hull in ("subvoxel", "thesis"):

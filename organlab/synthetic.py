@@ -51,6 +51,7 @@ __all__ = [
     "render_view",
     "render_masks",
     "make_session",
+    "with_true_cameras",
     "DEFAULT_ROI",
 ]
 
@@ -1027,6 +1028,40 @@ def make_session(
     write_json(out / "truth.json", truth)
     truth["session_json"] = session
     return truth
+
+
+def with_true_cameras(session_dir, dest):
+    """Copy a synthetic session, giving the true camera and view poses in ``session.json``.
+
+    The copy skips any calibration (``calibration.json``, check figures): it
+    reconstructs with the cameras that rendered the images, from ``truth.json``,
+    so a result with calibrated cameras can be compared with it.
+
+    Parameters
+    ----------
+    session_dir : str or Path
+        A session written by :func:`make_session` (has ``truth.json``).
+    dest : str or Path
+        The new session folder (must not exist).
+
+    Returns
+    -------
+    Path
+        ``dest``.
+    """
+    import shutil
+
+    src, dest = Path(session_dir), Path(dest)
+    if not (src / "truth.json").is_file():
+        raise ValueError(f"{src}: no truth.json; only sessions made by organlab.synthetic have true cameras")
+    shutil.copytree(src, dest, ignore=shutil.ignore_patterns("calibration.json", "calibration_check"))
+    truth = json.loads((dest / "truth.json").read_text())
+    doc = json.loads((dest / "session.json").read_text())
+    doc["camera"] = {"K": truth["camera"]["K"], "dist": truth["camera"]["dist"]}
+    for view, true_view in zip(doc["views"], truth["views"]):
+        view["pose"] = {"R": true_view["R"], "t": true_view["t"]}
+    write_json(dest / "session.json", doc)
+    return dest
 
 
 def main(argv=None):

@@ -10,6 +10,7 @@ import pytest
 
 from organlab import load_session
 from organlab.pipeline import reconstruct, write_outputs
+from organlab.synthetic import with_true_cameras
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 SPEC_REPORT_KEYS = {"volume_mm3", "mesh_volume_mm3", "mesh_area_mm2", "watertight", "voxel_size_mm", "timings_s", "views", "camera"}
@@ -24,14 +25,8 @@ def sessions(tmp_path_factory):
     ignore = shutil.ignore_patterns("calibration.json", "calibration_check")
     calibrated = tmp / "calibrated"
     shutil.copytree(SAMPLE, calibrated, ignore=ignore)
-    true = tmp / "true"
-    shutil.copytree(SAMPLE, true, ignore=ignore)
+    true = with_true_cameras(SAMPLE, tmp / "true")
     truth = json.loads((true / "truth.json").read_text())
-    doc = json.loads((true / "session.json").read_text())
-    doc["camera"] = {"K": truth["camera"]["K"], "dist": truth["camera"]["dist"]}
-    for v, tv in zip(doc["views"], truth["views"]):
-        v["pose"] = {"R": tv["R"], "t": tv["t"]}
-    (true / "session.json").write_text(json.dumps(doc))
     return calibrated, true, truth
 
 
