@@ -1,6 +1,6 @@
 """Loading and validating session folders (``organlab.session/1``).
 
-The format is specified in ``shared/specs/session-format.md``.  A session is
+The format is specified in ``docs/session-format.md``.  A session is
 checked when it is loaded, so that a bad one fails at once with a single
 clear message (:class:`~organlab.errors.SessionError`) naming the file and
 the key, instead of half-way through a reconstruction.
@@ -98,6 +98,15 @@ class Session:
     def read(self, path, *, key="image", grey=False):
         """Read one of the session's images, checking it exists and has the session's size."""
         return read_image(path, size=self.image_size, key=key, grey=grey, session=self)
+
+    def images(self, *, grey=False):
+        """The views' images, read and checked, in view order.
+
+        Returns
+        -------
+        list of (H, W, 3) uint8 RGB (or (H, W) uint8 with ``grey=True``)
+        """
+        return [self.read(v.image, key=f"views[{i}].image", grey=grey) for i, v in enumerate(self.views)]
 
     def given_camera(self):
         """The intrinsics given in ``session.json`` as a :class:`Camera`, or None."""
