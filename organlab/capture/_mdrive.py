@@ -206,7 +206,12 @@ class MDriveTurntable(Turntable):
         self._write("EM=1")
         time.sleep(min(0.2, self.timeout))
         self._ser.reset_input_buffer()
-        if self.query("PR EM") != 1:
+        try:
+            em = self.query("PR EM")
+        except NoReplyError:
+            raise NoReplyError(f"{self.port}: no answer to 'PR EM'; check the power, the cable, the baud rate and "
+                               f"party mode (a controller with PY=1 needs its device name)") from None
+        if em != 1:
             raise TurntableError(f"{self.port}: the controller did not switch to echo mode 1 (EM=1); check the baud rate and party mode")
         vm = int(round(speed_deg_s * self.steps_per_deg))
         acc = int(round(accel_deg_s2 * self.steps_per_deg))
@@ -233,7 +238,7 @@ class MDriveTurntable(Turntable):
             raise DisconnectedError(f"{self.port}: serial port lost ({e}); is the controller still plugged in?") from None
         return raw
 
-    def _exchange(self, cmd, parse, *, retry=True):
+    def _exchange(self, cmd, parse, *, retry=True, skip_blank=False):
         """Send ``cmd``, read one answer line, ``parse(text)`` it; retries on no/garbled answer."""
         tries = 1 + (self.retries if retry else 0)
         last = None
@@ -242,6 +247,8 @@ class MDriveTurntable(Turntable):
                 self._ser.reset_input_buffer()  # a late answer to an earlier command must not be taken for this one
                 self._write(cmd)
                 raw = self._read_line()
+                if skip_blank and raw.strip() == b"" and raw.endswith(b"\n"):
+                    raw = self._read_line()  # a controller may end the command with CR LF before a printed value
                 if not raw.endswith(b"\n"):
                     self.log("!", f"no reply within {self.timeout:g} s" + (f"; retry {attempt + 1}/{tries - 1}" if attempt < tries - 1 else ""))
                     last = "none"
@@ -270,7 +277,7 @@ class MDriveTurntable(Turntable):
 
     def query(self, cmd):
         """Send a ``PR`` command and return its integer answer."""
-        return self._exchange(cmd, lambda t: int(t) if _INT.match(t) else _BAD)
+        return self._exchange(cmd, lambda t: int(t) if _INT.match(t) else _BAD, skip_blank=True)
 
     # ---------------------------------------------------------- motion
     def _wait_stopped(self, what):

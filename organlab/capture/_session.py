@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OrganlabError
 from ..session import FORMAT, Pattern
 from ._audit import AUDIT_LIMIT_DEG, AngleAudit
 from ._errors import AngleAuditError, CameraError, CaptureError
@@ -198,9 +199,7 @@ class _Capture:
         imgs = [read_image(self.root / n, grey=True) for n in names]
         try:
             return calibrate_intrinsics(imgs, self.pattern, image_size=tuple(self.doc["image_size"]), names=names).camera
-        except CaptureError:
-            raise
-        except Exception as e:  # noqa: BLE001 - the audit is advisory when the intrinsics cannot be had
+        except OrganlabError as e:  # CalibrationError: the capture goes on, without the audit
             self.say(f"capture: angle audit off: intrinsics could not be calibrated from the hand-held images ({e})")
             return None
 
