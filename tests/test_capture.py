@@ -199,11 +199,13 @@ def test_a_capture_that_dies_keeps_its_images_and_a_second_run_completes_it(tmp_
     with SimRig(time_scale=20.0) as rig:
         # the 3rd move of the views pass (6 stops: 1 homing + 6 board moves + 2 view moves before it)
         rig.controller.inject(fault, on="MA", after=8)
+        rig.controller.inject("drop", on="PR P", after=3)  # retried; recorded in session.json
         with pytest.raises(StallError if fault == "stall" else DisconnectedError) as e:
             _capture(root, rig)
     assert "\n" not in str(e.value)
     doc = json.loads((root / "session.json").read_text())
     assert doc["capture"]["last_error"] == str(e.value) and not doc["capture"]["complete"]
+    assert [ev["kind"] for ev in doc["capture"]["events"]] == ["retry"] and "'PR P'" in doc["capture"]["events"][0]["message"]
     assert len(doc["views"]) == 2 and len(doc["calibration"]["turntable_images"]) == 6
     assert sorted(_listed(doc)) == _on_disk(root)  # every image taken is on disk and listed
     before = {p: os.stat(root / p).st_mtime_ns for p in _on_disk(root)}
