@@ -274,3 +274,30 @@ def test_capture_command_line(tmp_path, capsys):
     assert err.startswith("organlab: error: ") and "capture.step_deg is 90.0 but this run asks 30.0" in err and "\n" not in err
     assert main(["capture", "--turntable", "/dev/organlab-no-such-port", "--camera", "0", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     assert "cannot open the serial port" in capsys.readouterr().err
+
+
+def test_camera_lost_mid_capture_keeps_the_session(tmp_path, sim):
+    import cv2
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(8):
+        cv2.imwrite(str(frames / f"{i:02d}.png"), np.full((24, 32, 3), 10 * i, np.uint8))
+    root = tmp_path / "s"
+    opts = dict(step_deg=90.0, n_background=2, board=False, prompt=lambda *a: None, say=lambda s: None)
+    with _table(sim) as t:
+        cam = FolderCamera(frames)
+        cam.files = cam.files[:4]  # the camera dies after 4 frames: 2 backgrounds, 2 views
+        with pytest.raises(CameraError, match="all 4 images replayed"):
+            capture_session(root, t, cam, **opts)
+        doc = json.loads((root / "session.json").read_text())
+        assert len(doc["background_images"]) == 2 and [v["angle_deg"] for v in doc["views"]] == [0.0, 90.0]
+        assert sorted(_listed(doc)) == _on_disk(root) and doc["image_size"] == [32, 24]
+        cam = FolderCamera(frames)
+        cam.files = cam.files[4:]
+        capture_session(root, t, cam, **opts)
+    doc = json.loads((root / "session.json").read_text())
+    assert doc["capture"]["complete"] and [v["angle_deg"] for v in doc["views"]] == [0.0, 90.0, 180.0, 270.0]
+    # the 3rd view is the 5th frame (value 40): the second run took up exactly where the first stopped
+    assert cv2.imread(str(root / doc["views"][2]["image"]))[0, 0, 0] == 40
+    assert sim.table_angle_deg() == pytest.approx(270.0, abs=1e-4)
