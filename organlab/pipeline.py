@@ -88,8 +88,10 @@ class Reconstruction:
     silhouettes : list of organlab.silhouette.Silhouette
     report : dict
         The content of ``report.json``.
-    field : (nx, ny, nz) float32 or None
-        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``).
+    field : organlab.carving.BandField or None
+        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``),
+        stored in a narrow band; ``np.asarray(field)`` is the dense
+        ``(nx, ny, nz)`` float32 field.
     colors : (nx, ny, nz, 3) uint8 or None
         Voxel colours (``method='coloring'``).
     calibration : dict or None
@@ -200,8 +202,10 @@ def reconstruct(
     if hull == "thesis":
         occupancy = carving.carve([s.mask for s in sils], cameras, grid, tolerance=tolerance)
     else:
-        field_ = carving.hull_field([s.coverage for s in sils], cameras, grid, tolerance=tolerance, progress=bar)
-        occupancy = field_ >= 0.5
+        field_ = carving.hull_field(
+            [s.coverage for s in sils], cameras, grid, tolerance=tolerance, progress=bar, sparse=True
+        )
+        occupancy = field_.occupancy()
     bar(len(cameras), len(cameras))
     timings["carving"] = time.perf_counter() - t0
     bar.close()
@@ -235,8 +239,10 @@ def reconstruct(
     # after colouring, the surface is the coloured voxel model's: the hull field knows
     # nothing of the voxels colouring carved, and setting them outside in the field
     # moved the surface inward by up to a voxel wherever colouring carved a surface voxel
-    surface_of = occupancy if (colors is not None or field_ is None) else field_
-    mesh = mesh_from_volume(surface_of, grid, level=0.5)
+    if colors is None and field_ is not None:
+        mesh = field_.mesh()  # marching cubes on the band only: the mesh of the dense field
+    else:
+        mesh = mesh_from_volume(occupancy, grid, level=0.5)
     if colors is not None:
         mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, colored, colors, grid))
     bar(1, 1)
