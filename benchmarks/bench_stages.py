@@ -111,6 +111,7 @@ def main():
     print(f"session {session.name}: {len(session.views)} views, cameras {source}")
     print(f"time: best of {a.repeat} after a warm-up (shared machine); memory: peak RSS during the stage, "
           f"and what it adds (MB)")
+    print(f"load average before: {open('/proc/loadavg').read().split()[:3]}")
     rows = []
 
     def read():
@@ -154,8 +155,8 @@ def main():
     for a_, b_ in zip(sizes, sizes[1:]):
         for st in ("hull", "surface"):
             ra, rb = per_voxel[a_][st], per_voxel[b_][st]
-            print(f"  {st:<8} {a_:g} -> {b_:g} mm: {rb[0] / ra[0]:5.2f}x wall, {rb[1] / max(ra[1], 1e-9):5.2f}x CPU, "
-                  f"{rb[3] / max(ra[3], 1e-9):5.2f}x memory")
+            mem = f"{rb[3] / ra[3]:5.2f}x added memory" if ra[3] >= 1.0 else "added memory < 1 MB before"
+            print(f"  {st:<8} {a_:g} -> {b_:g} mm: {rb[0] / ra[0]:5.2f}x wall, {rb[1] / max(ra[1], 1e-9):5.2f}x CPU, {mem}")
     if 1.0 in per_voxel:
         sil = next(r for r in rows if r[0] == "silhouettes")
         h, s = per_voxel[1.0]["hull"], per_voxel[1.0]["surface"]
