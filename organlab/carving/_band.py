@@ -409,7 +409,7 @@ def band_field(sdfs, cameras, grid, *, tolerance, min_views, block=4, levels=4):
 
     Parameters
     ----------
-    sdfs : list of (H, W) float32, px, inside positive
+    sdfs : (V, H, W) float32 array or list of (H, W) float32, px, inside positive
         From ``_field._signed_distance``, one per view.
     cameras : list of Camera
     grid : VoxelGrid
@@ -436,7 +436,9 @@ def band_field(sdfs, cameras, grid, *, tolerance, min_views, block=4, levels=4):
     cps = np.stack([pack_camera(c) for c in cameras]).reshape(nv, N_CP)
     whs = np.array([[s.shape[1], s.shape[0]] for s in sdfs], dtype=np.int64)
     tpx = np.array([_threshold_px(c, grid) for c in cameras], dtype=np.float64)
-    if all(s.shape == (hmax, wmax) for s in sdfs):
+    if isinstance(sdfs, np.ndarray):
+        stack = np.ascontiguousarray(sdfs, dtype=np.float32)
+    elif all(s.shape == (hmax, wmax) for s in sdfs):
         stack = np.stack(sdfs)
     else:
         stack = np.zeros((nv, hmax, wmax), dtype=np.float32)

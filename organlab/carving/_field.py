@@ -50,6 +50,12 @@ on or behind a camera's image plane (``Z_cam <= 0``) or projects outside the
 image (beyond the outer edge of the border pixels) is neither carved nor
 kept by that view.  A voxel constrained by fewer than ``min_views`` views is
 set to -0.5 (empty).
+
+Only voxels within a voxel of the surface hold anything but the clip values,
+so :func:`hull_field` computes the field in a narrow band
+(:mod:`organlab.carving._band`): the same values as computing it at every
+voxel (``_dense_field``, kept as the yardstick), at a cost that grows with the
+surface's area instead of the grid's volume.
 """
 
 from __future__ import annotations
@@ -497,7 +503,10 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
 
 
 def _distance_images(coverages, cameras, grid, progress=None):
-    """The views' signed distance images (px), computed in threads (the kernels release the GIL)."""
+    """The views' signed distance images (px), computed in threads (the kernels release the GIL).
+
+    Returns a ``(V, H, W)`` float32 array when all views have one size, else a list.
+    """
     import os
     from concurrent.futures import ThreadPoolExecutor
 
@@ -506,10 +515,12 @@ def _distance_images(coverages, cameras, grid, progress=None):
         return _signed_distance(coverages[i], band, far_field=far_field)
 
     n = len(cameras)
-    sdfs = []
+    shapes = {c.shape for c in coverages}
+    # one (V, H, W) array when the views share a size (no second copy when stacking)
+    sdfs = np.empty((n, *shapes.pop()), dtype=np.float32) if len(shapes) == 1 else [None] * n
     with ThreadPoolExecutor(max_workers=max(1, min(n, os.cpu_count() or 1))) as pool:
         for i, sdf in enumerate(pool.map(one, range(n))):
-            sdfs.append(sdf)
+            sdfs[i] = sdf
             if progress is not None:
                 progress(i + 1, n)
     return sdfs
