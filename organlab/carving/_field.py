@@ -492,6 +492,8 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
     tolerance = int(tolerance)
+    if not isinstance(sparse, (bool, np.bool_)):
+        raise ValueError(f"sparse must be True or False, got {sparse!r}")
     # validate everything before computing anything
     coverages = [_as_coverage(s, c, i) for i, (s, c) in enumerate(zip(silhouettes, cameras))]
 
