@@ -62,6 +62,7 @@ def _compare(coverages, cameras, grid, **kw):
     covs = [_as_coverage(c, cam, i) for i, (c, cam) in enumerate(zip(coverages, cameras))]
     dense = _dense_field(covs, cameras, grid, **kw)
     assert np.array_equal(band.dense(), dense)  # the same values, voxel for voxel
+    assert np.array_equal(np.asarray(band), dense) and band.shape == dense.shape
     assert np.array_equal(band.occupancy(), dense >= 0.5)
     assert band.n_inside() == int((dense >= 0.5).sum())
     assert np.array_equal(hull_field(coverages, cameras, grid, **kw), dense)  # the dense return still works
