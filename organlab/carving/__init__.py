@@ -12,6 +12,7 @@ Public functions are re-exported from private modules:
 """
 
 from ._bbox import ProgressiveCarver, carve, carve_reference
+from ._by_view import carving_views
 from ._field import hull_field
 
-__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field"]
+__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field", "carving_views"]
