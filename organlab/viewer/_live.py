@@ -129,7 +129,7 @@ class LiveView:
         """Point the initial camera at the roi from outside the ring of cameras (mm scene)."""
         lo, hi = self._roi
         centre = (lo + hi) / 2
-        reach = max([1.5 * self._scale] + [1.2 * float(np.linalg.norm(c.center - centre)) for c in self.cameras])
+        reach = max([1.5 * self._scale] + [0.8 * float(np.linalg.norm(c.center - centre)) for c in self.cameras])
         cam = self.server.initial_camera
         cam.fov = np.deg2rad(50.0)
         cam.near = 0.01 * self._scale
