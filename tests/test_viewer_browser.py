@@ -154,7 +154,14 @@ def test_look_through_camera(app, page):
     assert _until(lambda: np.allclose(client.camera.position, app.cameras[j].center, atol=1e-3), 20)
     assert "/look" in app.live.server.scene._handle_from_node_name
     _settle(page, 3)
-    img = _canvas(page)
-    assert img.std() > 10  # the photo fills the view
+    if os.environ.get("ORGANLAB_UPDATE_SCREENSHOT"):
+        page.screenshot(path=str(Path(__file__).parents[1] / "docs" / "img" / "viewer_look.png"))
+    looking = _canvas(page)
+    assert looking.std() > 10  # the (undistorted) photo fills the view behind the model
+    # the model is drawn in front of the photo, from the camera's pose
+    app.live.set_visible("mesh", False)
+    _settle(page)
+    assert _changed(looking, _canvas(page)).sum() > 3000
+    app.live.set_visible("mesh", True)
     page.get_by_text("Leave camera view", exact=True).click()
     assert _until(lambda: "/look" not in app.live.server.scene._handle_from_node_name, 20)

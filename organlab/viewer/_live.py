@@ -57,6 +57,8 @@ class LiveView:
         self.selected = None
         self.updates = 0
         self._click_callbacks = []
+        self._views_visible = True
+        self._looking = None
         self._grid = grid
         self._carver = None
         if grid is not None:
@@ -232,11 +234,22 @@ class LiveView:
         wxyz, pos, fov, aspect = _scene.camera_pose(cam)
         centre = np.mean(self._roi, axis=0)
         depth = float((cam.R @ centre + cam.t)[2]) + 0.6 * self._scale
+        # the browser draws a pinhole camera: undistort the photo, and shift its
+        # plane by the principal point's offset from the image centre
+        import cv2
+
+        photo = np.asarray(image if image is not None else self.images[index])
+        photo = cv2.undistort(np.ascontiguousarray(photo[..., :3]), cam.K, cam.dist)
+        w, h = cam.image_size
+        fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+        offset = np.array([(w / 2 - 0.5 - cx) * depth / fx, (h / 2 - 0.5 - cy) * depth / fy, depth])
         with self._lock:
-            self._handles["look"] = self.server.scene.add_camera_frustum(
-                "/look", fov=fov, aspect=aspect, scale=_scene.frustum_scale(fov, aspect, depth), thickness=0.0005 * depth, color=(230, 120, 0),
-                image=np.asarray(image if image is not None else self.images[index])[..., :3], format="jpeg",
-                wxyz=wxyz, position=pos, cast_shadow=False, receive_shadow=False,
+            self._unhide_looked()
+            self._frustums[index].visible = False  # its own photo would cover the view
+            self._looking = index
+            self._handles["look"] = self.server.scene.add_image(
+                "/look", photo, render_width=w * depth / fx, render_height=h * depth / fy, format="jpeg",
+                wxyz=wxyz, position=pos + cam.R.T @ offset, cast_shadow=False, receive_shadow=False,
             )
             clients = [client] if client is not None else list(self.server.get_clients().values())
             for c in clients:
@@ -248,9 +261,16 @@ class LiveView:
     def hide_look(self):
         """Remove the photo plane of :meth:`look_through`."""
         with self._lock:
+            self._unhide_looked()
             h = self._handles.pop("look", None)
             if h is not None:
                 h.remove()
+
+    def _unhide_looked(self):
+        j = getattr(self, "_looking", None)
+        if j is not None:
+            self._frustums[j].visible = self._views_visible
+            self._looking = None
 
     # ------------------------------------------------------------ model
     def set_voxels(self, occupancy, grid, colors=None, *, visible=True):
@@ -315,8 +335,9 @@ class LiveView:
         """Show or hide ``'voxels'``, ``'mesh'``, ``'carved'`` or ``'views'``."""
         with self._lock:
             if key == "views":
-                for h in self._frustums:
-                    h.visible = visible
+                self._views_visible = bool(visible)
+                for j, h in enumerate(self._frustums):
+                    h.visible = visible and j != getattr(self, "_looking", None)
             elif key in self._handles:
                 self._handles[key].visible = visible
 
