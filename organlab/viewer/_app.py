@@ -57,6 +57,7 @@ class Result:
     seconds: float = 0.0
     generation: int = 0
     views: np.ndarray | None = None  # carving_views, computed on demand
+    timings: dict = dataclasses.field(default_factory=dict)  # seconds per stage
 
 
 def _load_cameras(session, quiet=True):
@@ -122,6 +123,9 @@ class SessionViewer:
         self.status = "starting"
         self.errors = []
         self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}")
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="organlab-viewer-silhouettes")
         self.worker = LatestWorker(self._job, on_error=self._error)
         from ._gui import Controls
 
@@ -205,15 +209,18 @@ class SessionViewer:
         grid = VoxelGrid.from_roi(st.roi[0], st.roi[1], st.voxel_size)
         self.status = f"run {gen}: silhouettes"
         self.controls.show_status(self.status)
+        tm = {}
         masks, covs = [], []
-        for j in range(len(self.cameras)):
-            m, c = self.silhouette(j, st.threshold)
+        # OpenCV releases the GIL: re-threshold the views on two threads
+        for m, c in self._pool.map(lambda j: self.silhouette(j, st.threshold), range(len(self.cameras))):
             masks.append(m)
             covs.append(c)
-            check()
+        check()
+        tm["silhouettes"] = time.perf_counter() - t0
         if kind == "stream":
             self._stream(grid, st, masks, check)
         self.status = f"run {gen}: carving"
+        t1 = time.perf_counter()
         if st.hull == "thesis":
             occ = carving.carve(masks, self.cameras, grid, tolerance=st.tolerance)
             field = None
@@ -223,19 +230,27 @@ class SessionViewer:
         check()
         if not occ.any():
             raise ValueError("carving left no voxel: lower the threshold, raise the tolerance or widen the roi")
+        tm["carving"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
         shown = self.controls.show_voxels or "mesh" not in self.live._handles
         n_surf = self.live.set_voxels(occ, grid, visible=shown)
         colors = None
         if st.method != "hull":
             occ, colors, field = self._color(occ, grid, masks, st, check)
             n_surf = self.live.set_voxels(occ, grid, colors, visible=shown)
+        tm["voxels sent"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
         mesh = self._mesh(occ, field, colors, grid)
+        tm["mesh"] = time.perf_counter() - t1
         check()
         self.live.set_mesh(mesh, visible=self.controls.show_mesh)
         self.live.set_visible("voxels", self.controls.show_voxels)
         res = Result(st, grid, occ, mesh, masks, colors, None, n_surf, 0.0, gen)
+        t1 = time.perf_counter()
         res.agreement = self._agreement(mesh, masks)
+        tm["agreement"] = time.perf_counter() - t1
         res.seconds = time.perf_counter() - t0
+        res.timings = tm
         check()
         self.result = res
         self.status = f"run {gen}: done in {res.seconds:.2f} s"
@@ -355,6 +370,7 @@ class SessionViewer:
     def stop(self):
         """Stop the worker and the server (frees the port)."""
         self.worker.stop()
+        self._pool.shutdown(wait=True)
         self.live.stop()
 
     def __enter__(self):
