@@ -245,6 +245,7 @@ class SessionViewer:
         check()
         self.live.set_mesh(mesh, visible=self.controls.show_mesh)
         self.live.set_visible("voxels", self.controls.show_voxels)
+        tm["scene updated"] = time.perf_counter() - t0  # voxels and mesh queued for the browser
         res = Result(st, grid, occ, mesh, masks, colors, None, n_surf, 0.0, gen)
         t1 = time.perf_counter()
         res.agreement = self._agreement(mesh, masks)
