@@ -198,3 +198,25 @@ def test_cli_view_bad_input(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("organlab: error:")
+
+
+def test_thesis_hull_and_coloring_reruns(app):
+    from organlab.viewer._scene import surface_voxels
+
+    base = app.result
+    assert base.settings.hull == "subvoxel" and base.settings.method == "hull"
+    g = app.rerun(hull="thesis")
+    assert app.wait(g, timeout=120) and not app.errors
+    res = app.result
+    np.testing.assert_array_equal(res.occupancy, carve(res.masks, app.cameras, res.grid))
+    g = app.rerun(hull="subvoxel", method="coloring")
+    assert app.wait(g, timeout=300) and not app.errors
+    res = app.result
+    assert res.colors is not None and res.mesh.vertex_colors is not None
+    assert not (res.occupancy & ~base.occupancy).any()  # colouring only carves the hull
+    assert res.occupancy.sum() < base.occupancy.sum()
+    # the voxels are shown in their colours
+    np.testing.assert_array_equal(app.live._handles["voxels"].colors, res.colors[surface_voxels(res.occupancy)])
+    assert type(app.live._handles["mesh"]).__name__ == "GlbHandle"  # mesh sent with vertex colours
+    g = app.rerun(method="hull")
+    assert app.wait(g, timeout=120)
