@@ -176,3 +176,23 @@ def test_look_through_camera(app, page):
     app.live.set_visible("mesh", True)
     page.get_by_text("Leave camera view", exact=True).click()
     assert _until(lambda: "/look" not in app.live.server.scene._handle_from_node_name, 20)
+
+
+def test_click_a_frustum_looks_through_it(app, page):
+    from organlab.viewer._scene import camera_pose
+
+    j = 4
+    cam = app.cameras[j]
+    wxyz, pos, _, _ = camera_pose(cam)
+    client = next(iter(app.live.server.get_clients().values()))
+    with client.atomic():  # stand 250 mm behind view j's camera, looking the same way
+        client.camera.position = pos - 250.0 * cam.R[2]
+        client.camera.wxyz = wxyz
+        client.camera.fov = np.deg2rad(30.0)
+    _settle(page, 3)
+    box = page.locator("canvas").first.bounding_box()
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)  # on frustum j
+    assert _until(lambda: int(app.controls.view.value) == j, 20)
+    assert _until(lambda: np.allclose(client.camera.position, cam.center, atol=1e-3), 20)
+    assert f"view **{app.view_ids[j]}**" in app.controls.view_info.content
+    page.get_by_text("Leave camera view", exact=True).click()
