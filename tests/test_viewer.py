@@ -220,3 +220,20 @@ def test_thesis_hull_and_coloring_reruns(app):
     assert type(app.live._handles["mesh"]).__name__ == "GlbHandle"  # mesh sent with vertex colours
     g = app.rerun(method="hull")
     assert app.wait(g, timeout=120)
+
+
+def test_roi_box_readout_and_apply(app):
+    c = app.controls
+    c.roi_edit.value = True
+    assert {"/roi", "/roi/box"} <= _nodes(app.live.server)
+    c.roi_size.value = (100.0, 90.0, 180.0)
+    assert tuple(app.live.server.scene._handle_from_node_name["/roi/box"].dimensions) == (100.0, 90.0, 180.0)
+    assert f"{50 * 45 * 90:,} voxels at 2 mm" in c.roi_info.content
+    g0 = app.worker.generation
+    c.roi_apply.value = True  # as a click
+    assert app.worker.generation == g0 + 1 and app.wait(timeout=120) and not app.errors
+    assert app.result.grid.shape == (50, 45, 90)
+    lo, hi = app.result.grid.bounds
+    np.testing.assert_allclose(lo, [-50.0, -45.0, 10.0])
+    c.roi_edit.value = False
+    assert "/roi" not in _nodes(app.live.server)
