@@ -60,21 +60,11 @@ class Result:
     timings: dict = dataclasses.field(default_factory=dict)  # seconds per stage
 
 
-def _load_cameras(session, quiet=True):
-    """Cameras of a session, calibrating first when the session needs it."""
-    from ..errors import SessionError
+def _load_cameras(session):
+    """Cameras of a session: given, its matching calibration.json, or calibrated now (nothing written)."""
     from ..pipeline import session_cameras
 
-    try:
-        return session_cameras(session)
-    except SessionError:
-        if not session.intrinsic_images and not session.turntable_images:
-            raise
-    from .. import calibration as calib
-
-    result = calib.calibrate_session(session)
-    calib.write_calibration(session, result)
-    return session_cameras(session, result)
+    return session_cameras(session)
 
 
 class SessionViewer:
@@ -234,13 +224,14 @@ class SessionViewer:
         t1 = time.perf_counter()
         shown = self.controls.show_voxels or "mesh" not in self.live._handles
         n_surf = self.live.set_voxels(occ, grid, visible=shown)
-        colors = None
+        colors = colored = None
         if st.method != "hull":
-            occ, colors, field = self._color(occ, grid, masks, st, check)
+            occ, colors, colored = self._color(occ, grid, masks, st, check)
+            field = None
             n_surf = self.live.set_voxels(occ, grid, colors, visible=shown)
         tm["voxels sent"] = time.perf_counter() - t1
         t1 = time.perf_counter()
-        mesh = self._mesh(occ, field, colors, grid)
+        mesh = self._mesh(occ, field, colors, colored, grid)
         tm["mesh"] = time.perf_counter() - t1
         check()
         self.live.set_mesh(mesh, visible=self.controls.show_mesh)
@@ -283,17 +274,16 @@ class SessionViewer:
         kind = "voxel_coloring" if st.method == "coloring" else "space_carving"
         res = coloring.color_voxels(self.images, self.cameras, occ, grid, method=kind, masks=masks,
                                     progress=lambda d, n: check(), **kw)
-        return res.occupancy, res.colors, None
+        return res.occupancy, res.colors, res.colored
 
     @staticmethod
-    def _mesh(occ, field, colors, grid):
-        from ..surface import Mesh, mesh_from_volume
+    def _mesh(occ, field, colors, colored, grid):
+        from ..surface import color_vertices, mesh_from_volume
 
+        # after colouring, the surface is the coloured voxel model's (as organlab.pipeline does)
         mesh = mesh_from_volume(field if field is not None else occ, grid, level=0.5)
         if colors is not None:
-            from ..pipeline import _vertex_colors
-
-            mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, occ, colors, grid))
+            mesh = color_vertices(mesh, colors, colored, grid)
         return mesh
 
     def _agreement(self, mesh, masks):
