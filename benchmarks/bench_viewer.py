@@ -14,6 +14,9 @@
    updates per second until the client received them all, and bytes received
    per update.
 
+Wall-clock figures depend on what else runs on the machine; the CPU seconds
+of the process (all its threads, the probe's included) are printed too.
+
 Usage::
 
     .venv/bin/python benchmarks/bench_viewer.py [--repeat 5] [--sizes 2 1]
@@ -83,14 +86,16 @@ def bench_slider(session, sizes, repeat):
         app.rerun(threshold=20.0)  # warm-up (numba, caches)
         app.wait()
         probe.quiet()
-        totals, jobs, sent, scene = [], [], [], []
+        totals, jobs, sent, scene, cpu = [], [], [], [], []
         for k in range(repeat):
             b0 = probe.bytes
+            c0 = time.process_time()
             t0 = time.perf_counter()
             g = app.rerun(threshold=18.0 + 0.5 * k + 0.25)
             app.wait(g)
             last = probe.quiet()
             totals.append(last - t0)
+            cpu.append(time.process_time() - c0)
             jobs.append(app.result.seconds)
             scene.append(app.result.timings["scene updated"])
             sent.append(probe.bytes - b0)
@@ -99,7 +104,7 @@ def bench_slider(session, sizes, repeat):
               f"voxels, {len(r.mesh.faces):,} faces): median {np.median(totals):.3f} s "
               f"(min {min(totals):.3f}, max {max(totals):.3f}) until the client received the last message; "
               f"voxels + mesh queued after {np.median(scene):.3f} s; whole job {np.median(jobs):.3f} s; "
-              f"{np.median(sent) / 1e6:.2f} MB sent")
+              f"{np.median(sent) / 1e6:.2f} MB sent; {np.median(cpu):.3f} CPU s (all threads of this process)")
         print("   last run: " + ", ".join(f"{k} {v:.3f} s" for k, v in r.timings.items()))
         probe.close()
         app.stop()
