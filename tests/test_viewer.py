@@ -72,6 +72,12 @@ def test_live_view_streams_the_progressive_hull_and_frees_its_port():
         assert (pts >= lo).all() and (pts <= hi).all()
         counts.append(len(pts))
     assert counts[0] > counts[-1]  # the hull is refined as views arrive
+    with pytest.raises(ValueError, match="image_size"):
+        live.add_view(np.zeros((10, 10, 3), np.uint8), cams[0])
+    with pytest.raises(TypeError, match="Camera"):
+        live.add_view(image, "camera")
+    with pytest.raises(ValueError, match="grid"):
+        live.set_voxels(np.ones((3, 3, 3), bool), grid)
     np.testing.assert_array_equal(occ, carve(masks, cams, grid))
     live.set_mesh(mesh_from_volume(occ, grid))
     nodes = _nodes(live.server)

@@ -123,6 +123,9 @@ class Controls:
         def _(_e):
             app.rerun()
 
+        self._wire_views()
+
+    def _wire_views(self):
         @self.view.on_update
         def _(_e):
             self.select(int(self.view.value))

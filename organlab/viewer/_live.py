@@ -160,8 +160,19 @@ class LiveView:
         -------
         int : the view's index
         """
+        from ..camera import Camera
+
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be an organlab.camera.Camera, got {type(camera).__name__}")
+        img = np.asarray(image)
+        w, h = camera.image_size
+        if img.shape[:2] != (h, w) or img.ndim not in (2, 3) or img.dtype != np.uint8:
+            raise ValueError(f"image must be (H, W) or (H, W, 3) uint8 with (H, W) = {(h, w)} (the camera's image_size), "
+                             f"got {img.shape} {img.dtype}")
         mask = getattr(silhouette, "mask", silhouette)
         mask = None if mask is None else np.asarray(mask, bool)
+        if mask is not None and mask.shape != (h, w):
+            raise ValueError(f"silhouette must be (H, W) = {(h, w)} (the camera's image_size), got {mask.shape}")
         with self._lock:
             i = len(self.cameras)
             self.cameras.append(camera)
@@ -283,6 +294,8 @@ class LiveView:
         colors : grid.shape + (3,) uint8, optional
             Voxel colours (voxel colouring); else shaded by height.
         """
+        if np.shape(occupancy) != tuple(grid.shape):
+            raise ValueError(f"occupancy has shape {np.shape(occupancy)} but the grid is {grid.shape}")
         surf = _scene.surface_voxels(occupancy)
         idx = np.argwhere(surf)
         pts = grid.centers(idx).astype(np.float32)
