@@ -243,3 +243,36 @@ def test_roi_box_readout_and_apply(app):
     np.testing.assert_allclose(lo, [-50.0, -45.0, 10.0])
     c.roi_edit.value = False
     assert "/roi" not in _nodes(app.live.server)
+
+
+def test_capture_listener_carves_as_the_table_turns(sample):
+    """What organlab.capture's on_view(index, angle, image) feeds: the hull after
+    the last view equals carve() of the same silhouettes."""
+    from organlab import silhouette as S
+    from organlab.camera import rot_z
+    from organlab.pipeline import session_cameras
+    from organlab.session import load_session
+    from organlab.viewer import LiveView
+
+    s = load_session(sample)
+    cams = session_cameras(s)
+    idx = list(range(0, 36, 4))
+    cam0 = cams[0].with_pose(cams[0].R @ rot_z(-s.views[0].angle_deg), cams[0].t)  # the camera at table angle 0
+    bg = S.background_model([s.read(p) for p in s.background_images])
+    grid = VoxelGrid.from_roi(s.roi_min, s.roi_max, 4.0)
+    live = LiveView(grid=grid, port=0)
+    try:
+        on_view = live.capture_listener(cam0, background=bg, threshold=20.0)
+        masks = []
+        for k, i in enumerate(idx):
+            image = s.read(s.views[i].image)
+            on_view(k, s.views[i].angle_deg, image)
+            masks.append(S.silhouette(image, bg, threshold=20.0).mask)
+            # the frustum stands where the session's camera of that view is
+            np.testing.assert_allclose(live.cameras[-1].center, cams[i].center, atol=1e-6)
+        from organlab.viewer._scene import surface_voxels
+
+        hull = carve(masks, [cams[i] for i in idx], grid)
+        assert len(live._handles["voxels"].points) == surface_voxels(hull).sum() > 0
+    finally:
+        live.stop()

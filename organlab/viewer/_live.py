@@ -187,6 +187,35 @@ class LiveView:
             self.set_voxels(occ, self._grid)
         return i
 
+    def capture_listener(self, camera0, *, background=None, threshold=None):
+        """A callback for ``organlab.capture``'s ``on_view(index, angle_deg, image)``.
+
+        Each captured image is shown at its camera ``camera0.at_table_angle(angle)``;
+        with a background model its silhouette is found
+        (:func:`organlab.silhouette.silhouette`) and, when this view was made with
+        a ``grid``, the hull is carved and streamed as the table turns.
+
+        Parameters
+        ----------
+        camera0 : Camera
+            The calibrated camera at table angle 0 (``R_cam``, ``t_cam``).
+        background : (H, W, 3) float, optional
+            :func:`organlab.silhouette.background_model` of the empty scene.
+        threshold : float, optional
+            Grey levels (automatic per view when omitted).
+
+        Returns
+        -------
+        callable(index, angle_deg, image)
+        """
+        from ..silhouette import silhouette
+
+        def on_view(index, angle_deg, image):
+            sil = None if background is None else silhouette(image, background, threshold=threshold)
+            self.add_view(image, camera0.at_table_angle(angle_deg), sil)
+
+        return on_view
+
     def _add_frustum(self, i):
         cam = self.cameras[i]
         wxyz, pos, fov, aspect = _scene.camera_pose(cam)
