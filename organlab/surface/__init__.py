@@ -13,11 +13,14 @@ Public names are re-exported from private modules by topic:
 - :mod:`._truth`: distance to a synthetic specimen's exact surface.
 """
 
-from ._io import read_ply, write_ply, write_stl
+from ._aaa import AAAMeasures, measure_aaa
+from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
 from ._mesh import MC_METHODS, Mesh, mesh_from_volume
 from ._quality import boundary_loops, mesh_quality
 from ._repair import finish_surface, remesh_mesh, repair_mesh, smooth_mesh
+from ._tetra import TETRA_FORMATS, TetMesh, read_tetra, tet_quality, tetrahedralize, write_tetra
 from ._truth import distance_to_specimen, surface_samples
+from ._voronoi import crust, labelled_balls, poisson_surface, poles, vertex_normals
 
 __all__ = [
     "Mesh",
@@ -26,6 +29,9 @@ __all__ = [
     "write_ply",
     "write_stl",
     "read_ply",
+    "write_obj",
+    "read_obj",
+    "write_vtk",
     "mesh_quality",
     "boundary_loops",
     "finish_surface",
@@ -34,4 +40,17 @@ __all__ = [
     "remesh_mesh",
     "distance_to_specimen",
     "surface_samples",
+    "measure_aaa",
+    "AAAMeasures",
+    "tetrahedralize",
+    "TetMesh",
+    "tet_quality",
+    "write_tetra",
+    "read_tetra",
+    "TETRA_FORMATS",
+    "crust",
+    "labelled_balls",
+    "poles",
+    "poisson_surface",
+    "vertex_normals",
 ]

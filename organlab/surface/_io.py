@@ -92,3 +92,63 @@ def read_ply(path):
     v = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
     c = np.stack([vert["r"], vert["g"], vert["b"]], axis=1) if has_color else None
     return Mesh(v, face["i"].astype(np.int64), c)
+
+
+def write_obj(path, mesh):
+    """Write a Wavefront OBJ (text; world frame, mm; vertex colours as ``v x y z r g b`` in 0-1).
+
+    Parameters
+    ----------
+    path : str or Path
+    mesh : Mesh
+    """
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    cols = [v]
+    fmt = "v %.6f %.6f %.6f"
+    if mesh.vertex_colors is not None:
+        cols.append(np.asarray(mesh.vertex_colors, dtype=np.float64) / 255.0)
+        fmt += " %.4f %.4f %.4f"
+    with open(Path(path), "w", encoding="ascii") as fh:
+        fh.write("# organlab mesh, world frame, mm\n")
+        np.savetxt(fh, np.hstack(cols), fmt=fmt)
+        np.savetxt(fh, np.asarray(mesh.faces) + 1, fmt="f %d %d %d")
+
+
+def read_obj(path):
+    """Read the vertices and triangles of an OBJ written by :func:`write_obj`.
+
+    Returns
+    -------
+    Mesh
+    """
+    verts, faces = [], []
+    for line in Path(path).read_text(encoding="ascii").splitlines():
+        parts = line.split()
+        if parts[:1] == ["v"]:
+            verts.append([float(x) for x in parts[1:4]])
+        elif parts[:1] == ["f"]:
+            faces.append([int(x.split("/")[0]) - 1 for x in parts[1:4]])
+    return Mesh(np.array(verts, dtype=np.float64).reshape(-1, 3), np.array(faces, dtype=np.int64).reshape(-1, 3))
+
+
+def write_vtk(path, mesh):
+    """Write a triangle mesh as VTK: legacy ``.vtk`` or XML ``.vtu`` after the suffix (meshio).
+
+    Parameters
+    ----------
+    path : str or Path
+        Ends in ``.vtk`` or ``.vtu``.
+    mesh : Mesh
+    """
+    import meshio
+
+    path = Path(path)
+    fmt = {".vtk": "vtk", ".vtu": "vtu"}.get(path.suffix.lower())
+    if fmt is None:
+        raise ValueError(f"{path}: write_vtk writes .vtk or .vtu files")
+    point_data = {}
+    if mesh.vertex_colors is not None:
+        point_data["rgb"] = np.asarray(mesh.vertex_colors, dtype=np.uint8)
+    m = meshio.Mesh(np.asarray(mesh.vertices, np.float64), [("triangle", np.asarray(mesh.faces))], point_data=point_data)
+    meshio.write(path, m, file_format=fmt)
+    return path

@@ -70,7 +70,10 @@ def _repair_once(ms, speck_mm):
     if loops:
         # maxholesize counts boundary edges: just above the largest hole
         ms.meshing_close_holes(maxholesize=int(max(loops)) + 1, newfaceselected=False)
-    ms.meshing_re_orient_faces_coherently()
+    try:
+        ms.meshing_re_orient_faces_coherently()
+    except pymeshlab.PyMeshLabException:
+        pass  # still non-manifold: the next round removes more faces first
     return loops
 
 
