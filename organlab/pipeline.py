@@ -106,6 +106,8 @@ class Reconstruction:
     field: np.ndarray | None = None
     colors: np.ndarray | None = None
     calibration: dict | None = None
+    raw_mesh: object = None  # the marching-cubes mesh before organlab.surface.finish_surface
+    aaa: object = None  # organlab.surface.AAAMeasures when measured
 
 
 def reconstruct(
@@ -118,6 +120,8 @@ def reconstruct(
     color_threshold=None,
     tolerance=0,
     progress=None,
+    finish=True,
+    measure=None,
 ):
     """Reconstruct a session: silhouettes, visual hull, (colouring), surface.
 
@@ -146,6 +150,12 @@ def reconstruct(
         Views allowed to disagree before a voxel is carved.
     progress : callable(stage) -> bar, optional
         Factory of per-stage progress bars (``bar(done, total)``, ``bar.close()``).
+    finish : bool
+        Repair, smooth and remesh the marching-cubes surface
+        (:func:`organlab.surface.finish_surface`: watertight, manifold, no slivers).
+    measure : bool, optional
+        AAA measurements (:func:`organlab.surface.measure_aaa`); default: when
+        the session says its specimen is an AAA.
 
     Returns
     -------
@@ -239,12 +249,34 @@ def reconstruct(
     mesh = mesh_from_volume(surface_of, grid, level=0.5)
     if colors is not None:
         mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, colored, colors, grid))
+    raw_mesh, surface_report, aaa = mesh, None, None
+    if finish:
+        from .surface import finish_surface
+
+        mesh, surface_report = finish_surface(raw_mesh, voxel_size=voxel_size)
+    if measure or (measure is None and _is_aaa(session)):
+        from .surface import measure_aaa
+
+        aaa = measure_aaa(surface_of, grid)
     bar(1, 1)
     timings["surface"] = time.perf_counter() - t0
     bar.close()
 
     report = _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings, method, hull)
-    return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration)
+    report["raw_mesh_volume_mm3"] = raw_mesh.volume
+    if surface_report is not None:
+        report["surface"] = surface_report
+    if aaa is not None:
+        report["aaa"] = aaa.summary()
+    return Reconstruction(
+        session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration, raw_mesh, aaa
+    )
+
+
+def _is_aaa(session):
+    from .surface import is_aaa_session
+
+    return is_aaa_session(session)
 
 
 def _vertex_colors(vertices, colored, colors, grid):

@@ -10,13 +10,15 @@ Public names are re-exported from private modules by topic:
 - :mod:`._voronoi`: crust reconstruction from points, screened Poisson;
 - :mod:`._aaa`: centreline and aneurysm measurements;
 - :mod:`._tetra`: tetrahedral meshes (gmsh) and their files (meshio);
-- :mod:`._truth`: distance to a synthetic specimen's exact surface.
+- :mod:`._truth`: distance to a synthetic specimen's exact surface;
+- :mod:`._result`: the ``organlab mesh`` steps on a result folder, the AAA picture.
 """
 
 from ._aaa import AAAMeasures, measure_aaa
 from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
 from ._mesh import MC_METHODS, Mesh, mesh_from_volume
 from ._quality import boundary_loops, mesh_quality
+from ._result import aaa_picture, is_aaa_session, load_voxels, mesh_result
 from ._repair import finish_surface, remesh_mesh, repair_mesh, smooth_mesh
 from ._tetra import TETRA_FORMATS, TetMesh, read_tetra, tet_quality, tetrahedralize, write_tetra
 from ._truth import distance_to_specimen, surface_samples
@@ -53,4 +55,8 @@ __all__ = [
     "poles",
     "poisson_surface",
     "vertex_normals",
+    "mesh_result",
+    "load_voxels",
+    "is_aaa_session",
+    "aaa_picture",
 ]

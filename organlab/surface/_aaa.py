@@ -37,6 +37,8 @@ class AAAMeasures:
         Contour of that section.
     neck_diameter_mm : float
         Smallest equivalent diameter between the proximal end and the maximum.
+        Sections closer to an end than their own equivalent diameter (possibly
+        cut by the end) are left out of the maximum and the neck.
     sac_start_mm, sac_end_mm, sac_length_mm : float
         Arc lengths bounding the sac: the sections around the maximum whose
         equivalent diameter exceeds ``sac_factor`` times the neck's.
@@ -198,11 +200,18 @@ def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm
     if vol.shape != tuple(grid.shape):
         raise ValueError(f"volume shape {vol.shape} does not match the grid {grid.shape}")
     vol = vol.astype(np.float32)
+    above = vol > level
+    if not above.any():
+        raise OrganlabError("the model is empty: no vessel to measure")
+    # work on the bounding box of the model (plus a margin), not the whole roi
+    lo = np.maximum(np.argwhere(above).min(axis=0) - 2, 0)
+    hi = np.argwhere(above).max(axis=0) + 3
+    vol = vol[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     inside = _largest_component(vol > level)
     if inside.sum() < 27:
         raise OrganlabError("the model has fewer than 27 voxels inside: no vessel to measure")
     vs = float(grid.voxel_size)
-    origin = np.asarray(grid.origin, dtype=np.float64)
+    origin = np.asarray(grid.origin, dtype=np.float64) + lo * vs
     px = 0.5 * vs if pixel_mm is None else float(pixel_mm)
     c, arc, t, r, dmax = _centreline(inside, vs, smooth_mm, step_mm)
     c = c + origin
@@ -217,8 +226,12 @@ def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm
     eq = np.array([s[2] for s in sections])
     if np.all(np.isnan(feret)):
         raise OrganlabError("no closed section around the centreline: is the vessel cut by the roi?")
-    k = int(np.nanargmax(feret))
-    neck = float(np.nanmin(eq[: k + 1]))
+    # sections within one diameter of an end may be cut by the end (the roi, a cap): ignored
+    inner = (arc >= np.nan_to_num(eq, nan=0.0)) & (arc <= arc[-1] - np.nan_to_num(eq, nan=0.0))
+    if not inner.any():
+        inner[:] = True
+    k = int(np.nanargmax(np.where(inner, feret, np.nan)))
+    neck = float(np.nanmin(np.where(inner[: k + 1], eq[: k + 1], np.nan)))
     big = np.nan_to_num(eq, nan=0.0) > sac_factor * neck
     i0 = k
     while i0 > 0 and big[i0 - 1]:
@@ -226,20 +239,30 @@ def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm
     i1 = k
     while i1 < len(big) - 1 and big[i1 + 1]:
         i1 += 1
-    sac_vol = _sac_volume(inside, grid, c, arc, arc[i0], arc[i1])
+    thr = sac_factor * neck
+    s0 = _crossing(arc, eq, i0, i0 - 1, thr)
+    s1 = _crossing(arc, eq, i1, i1 + 1, thr)
+    sac_vol = _sac_volume(inside, origin, vs, c, arc, s0, s1)
     return AAAMeasures(
         c, arc, feret, eq, k, float(feret[k]), float(eq[k]), c[k].copy(), sections[k][0],
-        neck, float(arc[i0]), float(arc[i1]), float(arc[i1] - arc[i0]), sac_vol,
+        neck, s0, s1, s1 - s0, sac_vol,
         {"level": level, "step_mm": step_mm, "smooth_mm": smooth_mm, "pixel_mm": px, "sac_factor": sac_factor},
     )
 
 
-def _sac_volume(inside, grid, c, arc, s0, s1):
+def _crossing(arc, eq, i_in, i_out, thr):
+    """Arc length where the equivalent diameter crosses ``thr`` between sections i_in (above) and i_out."""
+    if not 0 <= i_out < len(arc) or not np.isfinite(eq[i_out]):
+        return float(arc[i_in])
+    w = (eq[i_in] - thr) / (eq[i_in] - eq[i_out])
+    return float(arc[i_in] + w * (arc[i_out] - arc[i_in]))
+
+
+def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     """Volume of the inside voxels whose nearest centreline point lies between arc lengths s0 and s1."""
     from scipy.spatial import cKDTree
 
-    idx = np.argwhere(inside)
-    pts = np.asarray(grid.origin) + idx * grid.voxel_size
+    pts = origin + np.argwhere(inside) * vs
     _, near = cKDTree(c).query(pts)
     sel = (arc[near] >= s0) & (arc[near] <= s1)
-    return float(sel.sum() * grid.voxel_size**3)
+    return float(sel.sum() * vs**3)

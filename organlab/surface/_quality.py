@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
+
+_CACHE = weakref.WeakKeyDictionary()  # Mesh is immutable: its figures are computed once
 
 
 def triangle_angles(mesh):
@@ -92,6 +96,14 @@ def mesh_quality(mesh):
         ``min_angle_deg``, ``faces_below_20deg``, ``max_aspect_ratio``,
         ``mean_aspect_ratio``.
     """
+    if mesh in _CACHE:
+        return dict(_CACHE[mesh])
+    q = _mesh_quality(mesh)
+    _CACHE[mesh] = q
+    return dict(q)
+
+
+def _mesh_quality(mesh):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
