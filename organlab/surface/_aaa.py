@@ -37,7 +37,7 @@ class AAAMeasures:
         Contour of that section.
     neck_diameter_mm : float
         Smallest equivalent diameter between the proximal end and the maximum.
-        Sections closer to an end than their own equivalent diameter (possibly
+        Sections closer to an end than half their equivalent diameter (possibly
         cut by the end) are left out of the maximum and the neck.
     sac_start_mm, sac_end_mm, sac_length_mm : float
         Arc lengths bounding the sac: the sections around the maximum whose
@@ -226,8 +226,10 @@ def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm
     eq = np.array([s[2] for s in sections])
     if np.all(np.isnan(feret)):
         raise OrganlabError("no closed section around the centreline: is the vessel cut by the roi?")
-    # sections within one diameter of an end may be cut by the end (the roi, a cap): ignored
-    inner = (arc >= np.nan_to_num(eq, nan=0.0)) & (arc <= arc[-1] - np.nan_to_num(eq, nan=0.0))
+    # sections within half a diameter of an end may be cut by it (the roi, a cap: complete
+    # beyond r tan(tilt) for an end plane tilted by up to 45 degrees): ignored
+    half = 0.5 * np.nan_to_num(eq, nan=0.0)
+    inner = (arc >= half) & (arc <= arc[-1] - half)
     if not inner.any():
         inner[:] = True
     k = int(np.nanargmax(np.where(inner, feret, np.nan)))
