@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
+from scipy.spatial.distance import pdist
 
 from organlab.cli import main
 from organlab.pipeline import reconstruct, write_outputs
@@ -48,7 +49,7 @@ def _true_max_section(phantom):
     for z, rz in zip(zs, r):
         p = np.stack([rz * np.cos(phi), rz * np.sin(phi)], axis=1)
         h = p[ConvexHull(p).vertices]
-        d = np.sqrt(((h[:, None] - h[None]) ** 2).sum(-1).max())
+        d = pdist(h).max()
         if d > best[0]:
             best = (d, np.array([*p.mean(axis=0), z]))
     return best

@@ -142,6 +142,7 @@ def _section(vol, origin, vs, level, c, t, half, px):
     """Contour (M, 2) in plane coordinates, the plane's basis, Feret and equivalent diameters."""
     from scipy import ndimage
     from scipy.spatial import ConvexHull
+    from scipy.spatial.distance import pdist
     from skimage.measure import find_contours, points_in_poly
 
     a = np.eye(3)[np.argmin(np.abs(t))]
@@ -166,7 +167,7 @@ def _section(vol, origin, vs, level, c, t, half, px):
     ct, area = best
     xy = ct * px - half
     h = xy[ConvexHull(xy).vertices]
-    feret = float(np.sqrt(((h[:, None] - h[None]) ** 2).sum(-1).max()))
+    feret = float(pdist(h).max())
     world = c + xy[:, :1] * e1 + xy[:, 1:] * e2
     return world, feret, 2.0 * np.sqrt(area * px * px / np.pi)
 
