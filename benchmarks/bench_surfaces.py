@@ -6,7 +6,7 @@ the labelled Delaunay balls (Voronoi-based, on scipy.spatial) from the
 marching-cubes points, and pymeshlab's screened Poisson; then the tetrahedral
 mesh of the finished surface.  Prints a Markdown table (docs/surfaces.md).
 
-    python benchmarks/bench_surfaces.py [--voxel-size 1]
+    python benchmarks/bench_surfaces.py [--voxel-size 1] [--picture docs/img/aaa_measures.png]
 """
 
 from __future__ import annotations
@@ -59,6 +59,7 @@ def _row(name, mesh, seconds, phantom, samples, oriented=True):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--voxel-size", type=float, default=1.0)
+    ap.add_argument("--picture", type=Path, default=None, help="also draw the AAA measures on the finished surface")
     a = ap.parse_args(argv)
     phantom = AAAPhantom()
     samples = surface_samples(phantom)
@@ -101,6 +102,12 @@ def main(argv=None):
         print("raw marching-cubes mesh: tetrahedralized")
     except Exception as e:  # noqa: BLE001 - reported, not hidden
         print(f"raw marching-cubes mesh: gmsh failed: {str(e).splitlines()[0][:120]}")
+    if a.picture is not None:
+        from organlab.surface import aaa_picture, measure_aaa
+
+        m, s = _timed(measure_aaa, vol, grid)
+        print(f"\nAAA measures ({s:.2f} s): {m.summary()}")
+        aaa_picture(fin, m, a.picture)
     steps = ", ".join(f"{s['step']} {s['volume_change_pct']:+.3f} %" for s in rep["steps"])
     print(f"\nfinish_surface steps (volume change): {steps}")
 

@@ -171,6 +171,25 @@ def remesh_mesh(mesh, target_mm, *, iterations=10, feature_deg=60.0, min_angle=2
     return out, _step("remesh", mesh, out, target_mm=float(target_mm), passes=passes)
 
 
+def _restore_volume(mesh, volume):
+    """Offset the vertices along their normals so that the enclosed volume is ``volume``.
+
+    Remeshing with longer edges cuts chords inside convex parts (-0.15 % at
+    1.5 mm on the sample, -0.5 % at 3 mm); a uniform normal offset of
+    ``(volume - V) / area`` (hundredths of a mm) gives the volume back
+    without changing the triangles' shapes.
+    """
+    from ._voronoi import vertex_normals
+
+    out = mesh
+    for _ in range(3):
+        gap = volume - out.volume
+        if abs(gap) <= 1e-6 * abs(volume):
+            break
+        out = Mesh(out.vertices + (gap / out.area) * vertex_normals(out), out.faces)
+    return out
+
+
 def _check_mesh(mesh):
     from ..errors import OrganlabError
 
@@ -180,7 +199,9 @@ def _check_mesh(mesh):
         raise OrganlabError("the mesh has no faces: nothing to repair (is the model empty?)")
 
 
-def finish_surface(mesh, *, voxel_size, repair=True, smooth=True, remesh="auto", feature_deg=60.0, min_angle=20.0):
+def finish_surface(
+    mesh, *, voxel_size, repair=True, smooth=True, remesh="auto", feature_deg=60.0, min_angle=20.0, keep_volume=True
+):
     """A repaired, watertight, manifold surface fit for finite-element meshing.
 
     Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and
@@ -198,6 +219,9 @@ def finish_surface(mesh, *, voxel_size, repair=True, smooth=True, remesh="auto",
         Target edge length, mm (``'auto'``: 1.5 voxels; ``None``: no remeshing).
     feature_deg, min_angle : float, degrees
         See :func:`remesh_mesh`.
+    keep_volume : bool
+        After remeshing, offset the surface along its normals (by hundredths
+        of a mm) so that it encloses the input mesh's volume again.
 
     Returns
     -------
@@ -219,7 +243,13 @@ def finish_surface(mesh, *, voxel_size, repair=True, smooth=True, remesh="auto",
         out, rec = smooth_mesh(out)
         steps.append(rec)
     if remesh is not None:
+        before = out
         out, rec = remesh_mesh(out, float(remesh), feature_deg=feature_deg, min_angle=min_angle)
+        if keep_volume:
+            remeshed = out
+            out = _restore_volume(remeshed, before.volume)
+            rec["normal_offset_mm"] = (before.volume - remeshed.volume) / remeshed.area
+            rec["volume_change_pct"] = 100.0 * (out.volume - before.volume) / before.volume
         steps.append(rec)
         q = mesh_quality(out)
         if repair and (q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]):
