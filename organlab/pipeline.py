@@ -249,15 +249,21 @@ def reconstruct(
     mesh = mesh_from_volume(surface_of, grid, level=0.5)
     if colors is not None:
         mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, colored, colors, grid))
-    raw_mesh, surface_report, aaa = mesh, None, None
+    raw_mesh, surface_report, aaa, aaa_error = mesh, None, None, None
     if finish:
         from .surface import finish_surface
 
         mesh, surface_report = finish_surface(raw_mesh, voxel_size=voxel_size)
     if measure or (measure is None and _is_aaa(session)):
+        from .errors import OrganlabError
         from .surface import measure_aaa
 
-        aaa = measure_aaa(surface_of, grid)
+        try:
+            aaa = measure_aaa(surface_of, grid)
+        except OrganlabError as e:
+            if measure:  # asked for: an error; automatic: noted in the report
+                raise
+            aaa_error = str(e)
     bar(1, 1)
     timings["surface"] = time.perf_counter() - t0
     bar.close()
@@ -268,6 +274,8 @@ def reconstruct(
         report["surface"] = surface_report
     if aaa is not None:
         report["aaa"] = aaa.summary()
+    elif aaa_error:
+        report["aaa_error"] = aaa_error
     return Reconstruction(
         session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration, raw_mesh, aaa
     )
