@@ -98,8 +98,9 @@ def main(argv=None):
               f"{r['scaled_jacobian_min']:.3f} / {r['scaled_jacobian_mean']:.3f} | "
               f"{abs(tm.volume / m.volume - 1) < 1e-9} |")
     try:
-        tetrahedralize(lew)
-        print("raw marching-cubes mesh: tetrahedralized")
+        _, r = tetrahedralize(lew)
+        print(f"raw marching-cubes mesh: {r['tets']} tets in {r['seconds']:.2f} s, radius ratio min "
+              f"{r['radius_ratio_min']:.2g}, scaled Jacobian min {r['scaled_jacobian_min']:.2g}")
     except Exception as e:  # noqa: BLE001 - reported, not hidden
         print(f"raw marching-cubes mesh: gmsh failed: {str(e).splitlines()[0][:120]}")
     if a.picture is not None:
