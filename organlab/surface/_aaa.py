@@ -90,8 +90,6 @@ def _largest_component(mask):
 
 def _end_point(inside, s, top, slab):
     """Index of the inside voxel nearest the centroid of the largest component of the end slab."""
-    from scipy import ndimage
-
     sel = inside & ((s >= s[inside].max() - slab) if top else (s <= s[inside].min() + slab))
     sel = _largest_component(sel)
     idx = np.argwhere(sel)
