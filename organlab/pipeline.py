@@ -249,42 +249,39 @@ def reconstruct(
     mesh = mesh_from_volume(surface_of, grid, level=0.5)
     if colors is not None:
         mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, colored, colors, grid))
-    raw_mesh, surface_report, aaa, aaa_error = mesh, None, None, None
-    if finish:
-        from .surface import finish_surface
-
-        mesh, surface_report = finish_surface(raw_mesh, voxel_size=voxel_size)
-    if measure or (measure is None and _is_aaa(session)):
-        from .errors import OrganlabError
-        from .surface import measure_aaa
-
-        try:
-            aaa = measure_aaa(surface_of, grid)
-        except OrganlabError as e:
-            if measure:  # asked for: an error; automatic: noted in the report
-                raise
-            aaa_error = str(e)
+    raw_mesh = mesh
+    mesh, aaa, extra = _finish_and_measure(session, raw_mesh, surface_of, grid, finish, measure)
     bar(1, 1)
     timings["surface"] = time.perf_counter() - t0
     bar.close()
 
     report = _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings, method, hull)
-    report["raw_mesh_volume_mm3"] = raw_mesh.volume
-    if surface_report is not None:
-        report["surface"] = surface_report
-    if aaa is not None:
-        report["aaa"] = aaa.summary()
-    elif aaa_error:
-        report["aaa_error"] = aaa_error
+    report.update(extra)
     return Reconstruction(
         session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration, raw_mesh, aaa
     )
 
 
-def _is_aaa(session):
-    from .surface import is_aaa_session
+def _finish_and_measure(session, mesh, volume, grid, finish, measure):
+    """The finished surface (issue 9) and, for an AAA session or when asked, the AAA measures.
 
-    return is_aaa_session(session)
+    Returns the surface, the measures (or None) and the report's extra keys.
+    """
+    from .errors import OrganlabError
+    from .surface import finish_surface, is_aaa_session, measure_aaa
+
+    extra, aaa = {"raw_mesh_volume_mm3": mesh.volume}, None
+    if finish:
+        mesh, extra["surface"] = finish_surface(mesh, voxel_size=grid.voxel_size)
+    if measure or (measure is None and is_aaa_session(session)):
+        try:
+            aaa = measure_aaa(volume, grid)
+            extra["aaa"] = aaa.summary()
+        except OrganlabError as e:
+            if measure:  # asked for: an error; automatic: noted in the report
+                raise
+            extra["aaa_error"] = str(e)
+    return mesh, aaa, extra
 
 
 def _vertex_colors(vertices, colored, colors, grid):
