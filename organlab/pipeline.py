@@ -377,6 +377,13 @@ def summary_table(report):
         rows.append(("reference", f"{ref / 1000:.2f} cm3"))
     rows.append(("mesh area", f"{report['mesh_area_mm2'] / 100:.2f} cm2"))
     rows.append(("watertight", "yes" if report["watertight"] else "NO"))
+    if "surface" in report:
+        q = report["surface"]["final"]
+        rows.append(("surface", f"{q['faces']} faces, smallest angle {q['min_angle_deg']:.1f} deg (repaired, remeshed)"))
+    if "aaa" in report:
+        a = report["aaa"]
+        rows.append(("AAA max diameter", f"{a['max_diameter_mm']:.1f} mm at z {a['max_location_mm'][2]:.1f} mm, "
+                     f"sac {a['sac_length_mm']:.0f} mm"))
     if "rms_px" in report["camera"]:
         rows.append(("calib. RMS", f"{report['camera']['rms_px']:.3f} px"))
     if "turntable_rms_px" in report:
