@@ -1,0 +1,176 @@
+"""Public entry points of :mod:`organlab.coloring`."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ._common import (
+    DEFAULT_SUPPORT,
+    DEFAULT_THRESHOLD,
+    ColoringResult,
+    _check_inputs,
+    _check_occupancy,
+    _completeness_rule,
+)
+from ._methods import _owned, _space_carving, _surface, _voxel_coloring
+from ._statistics import _rgb
+
+
+def color_voxels(
+    images,
+    cameras,
+    occupancy,
+    grid,
+    *,
+    threshold=DEFAULT_THRESHOLD,
+    method="voxel_coloring",
+    start="hull",
+    completeness=None,
+    masks=None,
+    measure="between",
+    support=DEFAULT_SUPPORT,
+    progress=None,
+):
+    """Carve the voxels whose colours disagree between the views.
+
+    See the module docstring for the algorithms, the visibility constraint
+    and why voxels no view sees are kept.
+
+    Parameters
+    ----------
+    images : sequence of (H, W, 3) or (H, W) uint8
+        The views, RGB (or grey), one per camera.
+    cameras : sequence of Camera
+        The calibrated camera of each view, ``image_size == (W, H)``.
+    occupancy : (nx, ny, nz) bool or None
+        The visual hull on ``grid`` (e.g. from :func:`organlab.carving.carve`).
+        Only needed with ``start="hull"``.
+    grid : VoxelGrid
+    threshold : float
+        Photo-consistency threshold: largest standard deviation (grey levels,
+        ``sqrt`` of the mean per-channel variance) of a kept voxel's visible
+        pixels.
+    method : {'voxel_coloring', 'space_carving'}
+        Seitz & Dyer's single layered pass (needs the ordinal visibility
+        constraint), or multi-pass carving with exact visibility (any cameras).
+    start : {'hull', 'roi'}
+        Candidates: the hull's voxels, or every voxel of the grid.
+    completeness : None, int >= 1 or float in (0, 1)
+        Voxels with fewer visible pixels (a count, or a fraction of their
+        in-image, non-background footprint pixels over all views) are kept
+        untested.
+    masks : sequence of (H, W) bool, optional
+        Silhouettes (True = specimen).  Background pixels are never used for
+        colours; a voxel seen mostly through background in a view is carved.
+    measure : {'pooled', 'between'}
+        ``'pooled'``: the standard deviation of all visible pixels pooled
+        over the views (Seitz & Dyer); ``'between'``: of the per-view mean
+        colours (weighted by pixel counts), blind to the texture inside one
+        footprint.
+    support : int
+        Spatial support of a carve: an inconsistent voxel is carved only if
+        at least ``support`` inconsistent voxels (itself included) lie in its
+        3 x 3 neighbourhood within its layer (3 x 3 x 3 for space carving).
+        ``1`` is the plain per-voxel test.  Concavities are regions; a lone
+        inconsistent voxel on a true surface (a texture edge, a crease) is
+        kept, which stops it from opening a hole that the sweep would then
+        dig deeper.
+    progress : callable(done, total), optional
+        Called after every layer (or pass).
+
+    Returns
+    -------
+    ColoringResult
+
+    Raises
+    ------
+    VisibilityConstraintError
+        ``method="voxel_coloring"`` with cameras that allow no layered sweep.
+    ValueError
+        Mismatched numbers of images, cameras and masks, an image that is not
+        ``(H, W)`` / ``(H, W, 3)`` uint8 or not its camera's size, an
+        occupancy that is not bool of ``grid.shape``, or an invalid option.
+    TypeError
+        A camera that is not a :class:`~organlab.camera.Camera` or a grid that
+        is not a :class:`~organlab.grid.VoxelGrid`.
+    """
+    t0 = time.perf_counter()
+    stack, cameras, cams, bg = _check_inputs(images, cameras, grid, masks)
+    if method not in ("voxel_coloring", "space_carving"):
+        raise ValueError(f"method must be 'voxel_coloring' or 'space_carving', got {method!r}")
+    if start == "hull":
+        if occupancy is None:
+            raise ValueError("start='hull' needs the visual hull as occupancy (or use start='roi')")
+        candidates = _check_occupancy(occupancy, grid)
+    elif start == "roi":
+        candidates = np.ones(grid.shape, dtype=bool)
+    else:
+        raise ValueError(f"start must be 'hull' or 'roi', got {start!r}")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)) or not threshold >= 0:
+        raise ValueError(f"threshold must be a number >= 0 (grey levels), got {threshold!r}")
+    threshold = float(threshold)
+    min_pix, min_frac = _completeness_rule(completeness)
+    if measure not in ("pooled", "between"):
+        raise ValueError(f"measure must be 'pooled' or 'between', got {measure!r}")
+    if isinstance(support, bool) or not isinstance(support, (int, np.integer)) or not 1 <= support <= 27:
+        raise ValueError(f"support must be an integer in 1..27 (voxels), got {support!r}")
+    progress = progress or (lambda done, total: None)
+
+    run = _voxel_coloring if method == "voxel_coloring" else _space_carving
+    occ, colors, colored, counts, sweep, iterations = run(
+        stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress
+    )
+    n_cand = int(np.count_nonzero(candidates))
+    return ColoringResult(
+        occupancy=occ,
+        colors=colors,
+        colored=colored,
+        n_candidates=n_cand,
+        n_carved=n_cand - int(np.count_nonzero(occ)),
+        n_carved_background=counts["carved_bg"],
+        n_visible=int(np.count_nonzero(colored)),
+        n_hidden=counts["hidden"],
+        n_untested=counts["untested"],
+        seconds=time.perf_counter() - t0,
+        method=method,
+        sweep=sweep,
+        iterations=iterations,
+        threshold=threshold,
+    )
+
+
+
+def voxel_colors(images, cameras, occupancy, grid, *, masks=None):
+    """Colour the surface voxels of an occupancy, without carving.
+
+    Every view renders an item buffer of the surface voxels (each footprint
+    pixel goes to the surface voxel nearest the camera); a voxel's colour is
+    the mean of the pixels it owns, over all views.  For mesh vertex colours.
+
+    Parameters
+    ----------
+    images : sequence of (H, W, 3) or (H, W) uint8
+    cameras : sequence of Camera
+    occupancy : (nx, ny, nz) bool
+    grid : VoxelGrid
+    masks : sequence of (H, W) bool, optional
+        Background pixels (False) are not used.
+
+    Returns
+    -------
+    colors : (nx, ny, nz, 3) uint8
+        RGB; zeros where a voxel is empty, interior or seen by no view.
+    """
+    stack, cameras, cams, bg = _check_inputs(images, cameras, grid, masks)
+    occ = _check_occupancy(occupancy, grid)
+    colors = np.zeros(grid.shape + (3,), np.uint8)
+    ijk = np.argwhere(_surface(occ)).astype(np.int64)
+    if len(ijk) == 0:
+        return colors
+    st = _owned(stack, cams, bg, ijk, grid)
+    seen = st.n_vis > 0
+    ki = ijk[seen]
+    colors[ki[:, 0], ki[:, 1], ki[:, 2]] = _rgb(st.mean()[seen], stack.shape[3])
+    return colors

@@ -1,0 +1,114 @@
+"""Photo-consistency statistics of :mod:`organlab.coloring`: pooled pixel moments, spatial support."""
+
+from __future__ import annotations
+
+import numpy as np
+
+_BG_FRACTION = 0.5
+_REFINE = 2
+_BG_VIEWS = 1
+
+
+class _Stats:
+    """Pixel statistics of M voxels in V views, filled by the kernels, then pooled."""
+
+    def __init__(self, V, M, C):
+        self.v_vis = np.empty((V, M), np.int32)
+        self.v_tot = np.empty((V, M), np.int32)
+        self.v_sums = np.empty((V, M, C))
+        self.v_sq = np.empty((V, M, C))
+        self.v_bg = np.empty((V, M), np.int32)
+        self.v_cnt = np.empty((V, M), np.int32)
+
+    def arrays(self):
+        return self.v_vis, self.v_tot, self.v_sums, self.v_sq, self.v_bg, self.v_cnt
+
+    def pool(self):
+        self.n_vis = self.v_vis.sum(axis=0, dtype=np.int64)
+        self.n_tot = self.v_tot.sum(axis=0, dtype=np.int64)
+        self.sums = self.v_sums.sum(axis=0)
+        self.sq = self.v_sq.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_view = np.where(self.v_vis[:, :, None] > 0, self.v_sums**2 / self.v_vis[:, :, None], 0.0)
+        self.bw = per_view.sum(axis=0)
+        self.bgv = _seen_through(self.v_bg, self.v_cnt)
+        return self
+
+    def merge(self, other, rows):
+        """Take the pooled statistics of ``rows`` from ``other``; returns self."""
+        for name in ("n_vis", "n_tot", "sums", "sq", "bw", "bgv"):
+            getattr(self, name)[rows] = getattr(other, name)[rows]
+        return self
+
+    def mean(self):
+        return self.sums / np.maximum(self.n_vis, 1)[:, None]
+
+    def std(self, measure="pooled"):
+        """Standard deviation, grey levels: ``sqrt`` of the mean per-channel variance.
+
+        ``pooled``: of all visible pixels (Seitz & Dyer); ``between``: of the
+        per-view mean colours, each weighted by its number of pixels (the
+        texture inside one footprint does not count).
+        """
+        n = np.maximum(self.n_vis, 1)[:, None]
+        mean = self.sums / n
+        second = self.sq if measure == "pooled" else self.bw
+        var = np.maximum(second / n - mean * mean, 0.0)
+        return np.sqrt(var.mean(axis=1))
+
+    def decide(self, threshold, measure, min_pix, min_frac):
+        """Per voxel: inconsistent, seen, tested (bool arrays)."""
+        seen = self.n_vis > 0
+        tested = seen & (self.n_vis >= min_pix) & (self.n_vis >= min_frac * self.n_tot)
+        return tested & (self.std(measure) > threshold), seen, tested
+
+
+def _within(ab, na, nb_, flags, radius):
+    """Voxels of a layer within chessboard distance ``radius`` of a flagged one (all when radius is None)."""
+    if radius is None:
+        return np.ones(len(ab), bool)
+    from scipy import ndimage
+
+    g = np.zeros((na, nb_), bool)
+    g[ab[flags, 0], ab[flags, 1]] = True
+    g = ndimage.binary_dilation(g, structure=np.ones((3, 3), bool), iterations=int(radius))
+    return g[ab[:, 0], ab[:, 1]]
+
+
+def _support_2d(ab, na, nb_, flags, support):
+    """Keep the flags of voxels with at least ``support`` flagged voxels in their 3 x 3 in-layer neighbourhood."""
+    if support <= 1 or not flags.any():
+        return flags
+    g = np.zeros((na + 2, nb_ + 2), np.int32)
+    g[ab[:, 0] + 1, ab[:, 1] + 1] = flags
+    count = np.zeros_like(g)
+    for da in (-1, 0, 1):
+        for db in (-1, 0, 1):
+            count[1:-1, 1:-1] += g[1 + da : na + 1 + da, 1 + db : nb_ + 1 + db]
+    return flags & (count[ab[:, 0] + 1, ab[:, 1] + 1] >= support)
+
+
+def _support_3d(ijk, shape, flags, support):
+    """Keep the flags of voxels with at least ``support`` flagged voxels in their 3 x 3 x 3 neighbourhood."""
+    if support <= 1 or not flags.any():
+        return flags
+    from scipy import ndimage
+
+    g = np.zeros(shape, np.int32)
+    g[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = flags
+    count = ndimage.correlate(g, np.ones((3, 3, 3), np.int32), mode="constant")
+    return flags & (count[ijk[:, 0], ijk[:, 1], ijk[:, 2]] >= support)
+
+
+def _seen_through(v_bg, v_cnt):
+    """Voxels whose footprint is mostly background pixels in some view: (V, M) counts -> (M,) bool."""
+    return np.count_nonzero(v_bg > _BG_FRACTION * v_cnt, axis=0) >= _BG_VIEWS
+
+
+def _rgb(mean, C):
+    col = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
+    return np.repeat(col, 3, axis=1) if C == 1 else col
+
+
+# =====================================================================
+# public
