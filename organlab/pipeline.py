@@ -281,7 +281,8 @@ def _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
         "views": [
             {"image": session.relpath(v.image), "angle_deg": v.angle_deg, "R": c.R.tolist(), "t": c.t.tolist(),
-             "silhouette_threshold": s.threshold, "silhouette_source": s.source}
+             "silhouette_threshold": s.threshold, "silhouette_source": s.source,
+             **({"silhouette_key": s.info} if getattr(s, "info", None) else {})}
             for v, c, s in zip(session.views, cameras, sils)
         ],
         "camera": camera,

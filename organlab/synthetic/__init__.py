@@ -37,6 +37,8 @@ __all__ = [
     "Cylinder",
     "AAAPhantom",
     "GroovedSpecimen",
+    "DentedSpecimen",
+    "striped_albedo",
     "make_specimen",
     "render_view",
     "render_masks",
@@ -59,5 +61,15 @@ from ._boards import (
 )
 from ._cli import main
 from ._session import DEFAULT_ROI, make_session, with_true_cameras
-from ._specimens import AAAPhantom, Cylinder, GroovedSpecimen, Specimen, Sphere, make_specimen, tissue_albedo
+from ._specimens import (
+    AAAPhantom,
+    Cylinder,
+    DentedSpecimen,
+    GroovedSpecimen,
+    Specimen,
+    Sphere,
+    make_specimen,
+    striped_albedo,
+    tissue_albedo,
+)
 from ._views import render_masks, render_view

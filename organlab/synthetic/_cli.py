@@ -15,7 +15,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(prog="organlab synth", description="Write a synthetic organlab session folder.")
     ap.add_argument("out", help="session folder to write")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--specimen", choices=["aaa", "grooved"], default="aaa")
+    ap.add_argument("--specimen", choices=["aaa", "grooved", "dented"], default="aaa")
+    ap.add_argument(
+        "--hard", action="store_true", help="hard lighting: a lamp with cast shadows, highlights, +-10 %% exposure, JPEG views"
+    )
     ap.add_argument("--small", action="store_true", help="320x240, 12 views, few calibration images (fast)")
     ap.add_argument("--noise", type=float, default=None, help="pixel noise sigma, grey levels")
     ap.add_argument(
@@ -47,7 +50,7 @@ def main(argv=None):
         kw.update(view_format="jpg", background_format="jpg", jpeg_quality=98)
     t0 = time.perf_counter()
     truth = make_session(
-        args.out, seed=args.seed, specimen=args.specimen, include_camera=not args.no_camera, include_poses=not args.no_poses, **kw
+        args.out, seed=args.seed, specimen=args.specimen, include_camera=not args.no_camera, include_poses=not args.no_poses, hard=args.hard, **kw
     )
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     print(

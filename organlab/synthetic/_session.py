@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..session import FORMAT, write_json
-from . import _render
+from . import _hard, _render
 from ._boards import BOARD_MARGIN, DEFAULT_PATTERN, default_camera, intrinsic_board_poses, render_board, turntable_board_pose
 from ._specimens import make_specimen
 
@@ -77,6 +77,7 @@ def make_session(
     jpeg_quality=95,
     roi=None,
     name=None,
+    hard=False,
 ):
     """Write a complete synthetic session folder (``organlab.session/1``) and its ``truth.json``.
 
@@ -111,6 +112,11 @@ def make_session(
     roi : dict, optional
         ``{"min": [...], "max": [...]}``, mm; default ``[-70, 70] x [-70, 70] x [0, 200]``.
     name : str, optional
+    hard : bool
+        Hard lighting for the views and background frames (:mod:`organlab.synthetic._hard`):
+        a directional lamp with cast shadows on the plate, specular highlights,
+        a per-view exposure gain within +-10 %; views and frames are written as
+        JPEG (quality at most 90) over the pixel noise.
 
     Returns
     -------
@@ -134,7 +140,10 @@ def make_session(
     poses_in = intrinsic_board_poses(cam, n_intrinsic, pattern=pattern, seed=seed) if n_intrinsic else []
     intrinsic = _write_intrinsic_images(out, cam, poses_in, pattern, board_supersample, noise)
     turntable = _write_turntable_images(out, cam, pattern, n_turntable, turntable_step_deg, board_supersample, noise)
-    image_kw = dict(supersample=int(supersample), quality=jpeg_quality)
+    if hard:
+        view_format = background_format = "jpg"
+        jpeg_quality = min(int(jpeg_quality), 90)
+    image_kw = dict(supersample=int(supersample), quality=jpeg_quality, hard=hard)
     background = _write_background_frames(out, cam, n_background, noise, fmt=background_format, **image_kw)
     views, views_truth = _write_views(out, cam, spec, n_views, noise, include_poses, fmt=view_format, **image_kw)
     roi = DEFAULT_ROI if roi is None else roi
@@ -153,8 +162,12 @@ def make_session(
     }
     if include_camera:
         session["camera"] = {"K": cam.K.tolist(), "dist": cam.dist.tolist()}
+    if hard:  # key the views in Lab against the frames: exposure divided out, cast shadows not specimen
+        session["backdrop"] = {"color": "frames", "shadows": True}
     truth = _truth(cam, spec, views_truth, pattern, poses_in, seed=seed, noise_sigma=noise_sigma, supersample=supersample,
                    board_supersample=board_supersample, formats=(view_format, background_format, jpeg_quality))
+    if hard:
+        truth["hard"] = {"exposure_gains": [v["exposure_gain"] for v in views_truth]}
     write_json(out / "session.json", session)
     write_json(out / "truth.json", truth)
     truth["session_json"] = session
@@ -217,11 +230,11 @@ def _write_turntable_images(out, cam, pattern, n, step_deg, board_supersample, n
     return entries
 
 
-def _write_background_frames(out, cam, n, noise, *, supersample, fmt, quality):
+def _write_background_frames(out, cam, n, noise, *, supersample, fmt, quality, hard=False):
     """Background frames: the empty scene."""
     names = []
     if n:
-        empty = _render.render(cam, supersample=supersample)
+        empty = _hard.render_hard(cam, supersample=supersample) if hard else _render.render(cam, supersample=supersample)
         for i in range(int(n)):
             rel = f"background/{i:02d}.{fmt}"
             _write_image(out / rel, noise(empty, 3, i), fmt=fmt, quality=quality)
@@ -229,13 +242,17 @@ def _write_background_frames(out, cam, n, noise, *, supersample, fmt, quality):
     return names
 
 
-def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, fmt, quality):
+def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, fmt, quality, hard=False):
     """Views of the specimen every ``360 / n_views`` degrees; returns the session's and the truth's view entries."""
     views, views_truth = [], []
     for i in range(int(n_views)):
         a = float(360.0 * i / n_views)
         cam_a = cam.at_table_angle(a)
-        img = _render.render(cam_a, supersample=supersample, specimen=spec)
+        if hard:
+            gain = _hard.exposure_gain(np.random.default_rng([noise.seed, 5, i]))
+            img = gain * _hard.render_hard(cam_a, supersample=supersample, specimen=spec)
+        else:
+            img = _render.render(cam_a, supersample=supersample, specimen=spec)
         rel = f"views/{int(round(a * 10)):04d}.{fmt}" if a != int(a) else f"views/{int(a):03d}.{fmt}"
         _write_image(out / rel, noise(img, 4, i), fmt=fmt, quality=quality)
         entry = {"image": rel, "angle_deg": a}
@@ -243,6 +260,8 @@ def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, 
             entry["pose"] = {"R": cam_a.R.tolist(), "t": cam_a.t.tolist()}
         views.append(entry)
         views_truth.append({"angle_deg": a, "R": cam_a.R.tolist(), "t": cam_a.t.tolist()})
+        if hard:
+            views_truth[-1]["exposure_gain"] = float(gain)
     return views, views_truth
 
 

@@ -399,12 +399,67 @@ class GroovedSpecimen(_Union):
         self.star = star
 
 
+def striped_albedo(points):
+    """A greenish-yellow texture with fine dark stripes and speckles: unlike :func:`tissue_albedo`.
+
+    Stripes (period about 7 mm, tilted) and a higher-frequency speckle over
+    a green-to-ochre gradient in z; no default of organlab was tuned on it.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, mm, world (table) frame
+
+    Returns
+    -------
+    (N, 3) float64
+        RGB albedo, 0-255 scale.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    phi = np.arctan2(p[:, 1], p[:, 0])
+    stripe = 0.5 + 0.5 * np.tanh(2.5 * np.sin(2 * np.pi * (p[:, 2] + 9.0 * phi) / 7.0))
+    speck = 0.5 + 0.5 * np.sin(0.9 * p[:, 0] + 0.3) * np.sin(1.1 * p[:, 1] - 0.7) * np.sin(0.8 * p[:, 2] + 1.9)
+    g = np.clip(p[:, 2] / 90.0, 0.0, 1.0)[:, None]
+    base = (1 - g) * np.array([96.0, 170.0, 70.0]) + g * np.array([200.0, 160.0, 60.0])
+    dark = np.array([40.0, 52.0, 30.0])
+    col = dark + (base - dark) * (0.35 + 0.65 * stripe)[:, None]
+    return col * (0.8 + 0.2 * speck)[:, None]
+
+
+class DentedSpecimen(_Union):
+    """A squat, textured, lobed solid with hidden dents (a specimen no default was tuned on).
+
+    ``rho <= r(phi, z)``, ``0 <= z <= 90``: a four-lobed section (radius
+    about 34 mm) with ``n_dents`` round dents, ``depth`` mm deep, each
+    localised in phi and z (between 20 and 70 mm), on the lobes' flanks, so
+    most of each dent lies inside every silhouette of a camera ring.  The
+    texture is :func:`striped_albedo`.  Exact volume as for :class:`AAAPhantom`.
+    """
+
+    def __init__(self, *, n_dents=6, depth=8.0, height=90.0, name="dented"):
+        if n_dents < 0 or not 0 <= depth < 16 or not height > 75.0:
+            raise ValueError("need n_dents >= 0, 0 <= depth < 16 mm, height > 75 mm")
+        terms = [[34.0, 0, 0, 0, 0, 0, 0], [3.0, 0, 0, 0, 1, 4, 0.3], [2.0, 1, -10.0, height + 10.0, 0, 0, 0]]
+        self.dent_angles = [0.9 + 2 * np.pi * k / n_dents for k in range(int(n_dents))]
+        for k, mu in enumerate(self.dent_angles):
+            z0 = 20.0 + 8.0 * (k % 3)
+            terms.append([-float(depth), 1, z0, z0 + 42.0, 2, 30.0, mu])
+        star = _StarSolid(np.array(terms, dtype=np.float64), 0.0, float(height))
+        r = star.r_max
+        super().__init__([star], star.volume, (np.array([-r, -r, 0.0]), np.array([r, r, float(height)])), name)
+        self.star = star
+
+    def albedo(self, points):
+        return striped_albedo(points)
+
+
 def make_specimen(name):
-    """The specimen called ``name``: ``"aaa"`` (:class:`AAAPhantom`) or ``"grooved"`` (:class:`GroovedSpecimen`)."""
+    """The specimen called ``name``: ``"aaa"`` (:class:`AAAPhantom`), ``"grooved"`` (:class:`GroovedSpecimen`) or ``"dented"`` (:class:`DentedSpecimen`)."""
     if isinstance(name, Specimen):
         return name
     if name == "aaa":
         return AAAPhantom()
     if name == "grooved":
         return GroovedSpecimen()
-    raise ValueError(f"unknown specimen {name!r}; choose 'aaa' or 'grooved'")
+    if name == "dented":
+        return DentedSpecimen()
+    raise ValueError(f"unknown specimen {name!r}; choose 'aaa', 'grooved' or 'dented'")
