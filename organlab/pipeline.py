@@ -141,7 +141,10 @@ def reconstruct(
         silhouettes; occupancy = voxel centres inside the hull, mesh = the
         field's 0.5 level, between voxel centres.
     color_threshold : float, optional
-        Photo-consistency threshold (grey levels of standard deviation).
+        Photo-consistency threshold (grey levels of standard deviation, of the
+        brightness-normalised view colours); automatic when omitted
+        (:data:`organlab.coloring.PIPELINE_OPTIONS`: exposure normalised,
+        silhouette guard on).
     tolerance : int
         Views allowed to disagree before a voxel is carved.
     progress : callable(stage) -> bar, optional
@@ -212,17 +215,18 @@ def reconstruct(
         )
 
     # --- colouring
-    colors = None
+    colors = coloring_info = None
     if method != "hull":
         from . import coloring
 
         bar = progress("coloring")
         t0 = time.perf_counter()
-        kw = {} if color_threshold is None else {"threshold": color_threshold}
         kind = "voxel_coloring" if method == "coloring" else "space_carving"
         res = coloring.color_voxels(
-            images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=bar, **kw
+            images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=bar,
+            threshold="auto" if color_threshold is None else color_threshold, **coloring.PIPELINE_OPTIONS,
         )
+        coloring_info = coloring.report_entry(res, occupancy, grid)
         occupancy, colors, colored = res.occupancy, res.colors, res.colored
         timings["coloring"] = time.perf_counter() - t0
         bar.close()
@@ -244,6 +248,8 @@ def reconstruct(
     bar.close()
 
     report = _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings, method, hull)
+    if coloring_info is not None:
+        report["coloring"] = coloring_info
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration)
 
 

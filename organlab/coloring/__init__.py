@@ -17,6 +17,31 @@ from ._api import color_voxels, voxel_colors
 from ._common import DEFAULT_SUPPORT, DEFAULT_THRESHOLD, ColoringResult, VisibilityConstraintError
 from ._visibility import check_ordinal_visibility
 
+#: How the pipeline colours: a measure blind to view-dependent shading and
+#: highlights, exposure normalised per view, the silhouette guard on.
+PIPELINE_OPTIONS = {"measure": "normalized", "exposure": True, "guard": True}
+
+
+def report_entry(result, candidates, grid):
+    """The ``coloring`` entry of report.json: threshold, automatic, removed volume (mm^3), guard, noise.
+
+    Parameters
+    ----------
+    result : ColoringResult
+    candidates : (nx, ny, nz) bool
+        The occupancy colouring started from (the hull).
+    grid : VoxelGrid
+    """
+    return {
+        "threshold": result.threshold,
+        "automatic": result.automatic,
+        "removed_volume_mm3": grid.volume_of(candidates) - grid.volume_of(result.occupancy),
+        "method": result.method,
+        "restored_by_guard": result.n_restored,
+        "noise": result.noise,
+        "exposure_gains": None if result.gains is None else [round(g, 4) for g in result.gains],
+    }
+
 __all__ = [
     "VisibilityConstraintError",
     "ColoringResult",
@@ -25,4 +50,6 @@ __all__ = [
     "check_ordinal_visibility",
     "DEFAULT_THRESHOLD",
     "DEFAULT_SUPPORT",
+    "PIPELINE_OPTIONS",
+    "report_entry",
 ]

@@ -15,6 +15,8 @@ from ._common import (
     _completeness_rule,
 )
 from ._methods import _owned, _space_carving, _surface, _voxel_coloring
+from ._auto import auto_threshold, exposure_gains, image_noise, normalise
+from ._auto import guard as _guard
 from ._statistics import _rgb
 
 
@@ -32,6 +34,8 @@ def color_voxels(
     measure="between",
     support=DEFAULT_SUPPORT,
     progress=None,
+    exposure=False,
+    guard=False,
 ):
     """Carve the voxels whose colours disagree between the views.
 
@@ -48,10 +52,11 @@ def color_voxels(
         The visual hull on ``grid`` (e.g. from :func:`organlab.carving.carve`).
         Only needed with ``start="hull"``.
     grid : VoxelGrid
-    threshold : float
+    threshold : float or 'auto'
         Photo-consistency threshold: largest standard deviation (grey levels,
         ``sqrt`` of the mean per-channel variance) of a kept voxel's visible
-        pixels.
+        pixels.  ``'auto'`` (or None): measured on the candidates' surface
+        voxels and the pixel noise (:mod:`organlab.coloring._auto`).
     method : {'voxel_coloring', 'space_carving'}
         Seitz & Dyer's single layered pass (needs the ordinal visibility
         constraint), or multi-pass carving with exact visibility (any cameras).
@@ -64,11 +69,14 @@ def color_voxels(
     masks : sequence of (H, W) bool, optional
         Silhouettes (True = specimen).  Background pixels are never used for
         colours; a voxel seen mostly through background in a view is carved.
-    measure : {'pooled', 'between'}
+    measure : {'pooled', 'between', 'trimmed', 'normalized'}
         ``'pooled'``: the standard deviation of all visible pixels pooled
         over the views (Seitz & Dyer); ``'between'``: of the per-view mean
         colours (weighted by pixel counts), blind to the texture inside one
-        footprint.
+        footprint; ``'trimmed'``: ``'between'`` without the most deviant view
+        (robust to a highlight seen in one view); ``'normalized'``: ``'trimmed'``
+        of the per-view mean colours scaled to a common brightness (blind to
+        shading that changes with the view and to exposure; RGB only).
     support : int
         Spatial support of a carve: an inconsistent voxel is carved only if
         at least ``support`` inconsistent voxels (itself included) lie in its
@@ -79,6 +87,14 @@ def color_voxels(
         dig deeper.
     progress : callable(done, total), optional
         Called after every layer (or pass).
+    exposure : bool
+        Divide every view by its exposure gain, measured on the candidates'
+        surface voxels, before the test.
+    guard : bool
+        Silhouette guard (needs ``masks``): carved voxels are put back where
+        the carved model would leave a silhouette pixel unexplained that the
+        candidates explained, so the model still projects onto every
+        silhouette.
 
     Returns
     -------
@@ -108,20 +124,28 @@ def color_voxels(
         candidates = np.ones(grid.shape, dtype=bool)
     else:
         raise ValueError(f"start must be 'hull' or 'roi', got {start!r}")
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)) or not threshold >= 0:
-        raise ValueError(f"threshold must be a number >= 0 (grey levels), got {threshold!r}")
-    threshold = float(threshold)
+    automatic = threshold is None or (isinstance(threshold, str) and threshold == "auto")
+    if not automatic and (
+        isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.integer, np.floating)) or not threshold >= 0
+    ):
+        raise ValueError(f"threshold must be a number >= 0 (grey levels) or 'auto', got {threshold!r}")
     min_pix, min_frac = _completeness_rule(completeness)
-    if measure not in ("pooled", "between"):
-        raise ValueError(f"measure must be 'pooled' or 'between', got {measure!r}")
+    if measure not in ("pooled", "between", "trimmed", "normalized"):
+        raise ValueError(f"measure must be 'pooled', 'between', 'trimmed' or 'normalized', got {measure!r}")
+    if guard and masks is None:
+        raise ValueError("guard=True needs the silhouettes (masks=)")
     if isinstance(support, bool) or not isinstance(support, (int, np.integer)) or not 1 <= support <= 27:
         raise ValueError(f"support must be an integer in 1..27 (voxels), got {support!r}")
     progress = progress or (lambda done, total: None)
 
+    stack, threshold, noise, gains = _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix)
     run = _voxel_coloring if method == "voxel_coloring" else _space_carving
     occ, colors, colored, counts, sweep, iterations = run(
         stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress
     )
+    n_restored = 0
+    if guard:
+        occ, n_restored = _guard(occ, candidates, cameras, grid, masks)
     n_cand = int(np.count_nonzero(candidates))
     return ColoringResult(
         occupancy=occ,
@@ -138,7 +162,30 @@ def color_voxels(
         sweep=sweep,
         iterations=iterations,
         threshold=threshold,
+        automatic=automatic,
+        n_restored=n_restored,
+        noise=noise,
+        gains=gains,
     )
+
+
+def _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix):
+    """Exposure normalisation and the automatic threshold: (stack, threshold, noise, gains)."""
+    noise = gains = None
+    if not (automatic or exposure) or not candidates.any():
+        return stack, (float(threshold) if not automatic else 1.0), noise, gains
+    ijk = np.argwhere(_surface(candidates)).astype(np.int64)
+    st = _owned(stack, cams, bg, ijk, grid)
+    if exposure:
+        g = exposure_gains(st)
+        gains = tuple(float(x) for x in g)
+        stack = normalise(stack, g)
+        if automatic:
+            st = _owned(stack, cams, bg, ijk, grid)
+    if automatic:
+        noise = image_noise(stack)
+        threshold, _ = auto_threshold(st, measure, noise, min_pix)
+    return stack, float(threshold), noise, gains
 
 
 

@@ -58,6 +58,15 @@ class ColoringResult:
     iterations : int
         Passes (1 for voxel colouring).
     threshold : float
+        The threshold used (the automatic one when ``automatic``).
+    automatic : bool
+        The threshold was measured (``threshold="auto"``).
+    n_restored : int
+        Carved voxels the silhouette guard put back.
+    noise : float or None
+        Measured pixel noise, grey levels (automatic threshold only).
+    gains : tuple of float or None
+        Per-view exposure gains divided out (``exposure=True``).
     """
 
     occupancy: np.ndarray
@@ -74,6 +83,10 @@ class ColoringResult:
     sweep: str | None
     iterations: int
     threshold: float
+    automatic: bool = False
+    n_restored: int = 0
+    noise: float | None = None
+    gains: tuple | None = None
 
     def stats(self):
         """The scalar fields as a JSON-ready dict."""
@@ -89,6 +102,10 @@ class ColoringResult:
             "n_hidden": self.n_hidden,
             "n_untested": self.n_untested,
             "seconds": self.seconds,
+            "automatic": self.automatic,
+            "n_restored": self.n_restored,
+            "noise": self.noise,
+            "exposure_gains": None if self.gains is None else list(self.gains),
         }
 
 

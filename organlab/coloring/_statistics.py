@@ -32,11 +32,13 @@ class _Stats:
             per_view = np.where(self.v_vis[:, :, None] > 0, self.v_sums**2 / self.v_vis[:, :, None], 0.0)
         self.bw = per_view.sum(axis=0)
         self.bgv = _seen_through(self.v_bg, self.v_cnt)
+        self.trim = _trimmed_std(self.v_vis, self.v_sums)
+        self.chroma = _trimmed_std(self.v_vis, self.v_sums, normalized=True)
         return self
 
     def merge(self, other, rows):
         """Take the pooled statistics of ``rows`` from ``other``; returns self."""
-        for name in ("n_vis", "n_tot", "sums", "sq", "bw", "bgv"):
+        for name in ("n_vis", "n_tot", "sums", "sq", "bw", "bgv", "trim", "chroma"):
             getattr(self, name)[rows] = getattr(other, name)[rows]
         return self
 
@@ -48,8 +50,15 @@ class _Stats:
 
         ``pooled``: of all visible pixels (Seitz & Dyer); ``between``: of the
         per-view mean colours, each weighted by its number of pixels (the
-        texture inside one footprint does not count).
+        texture inside one footprint does not count); ``trimmed``: ``between``
+        without the one view whose mean colour is farthest from the others'
+        (a highlight or a glint seen in one view), when at least 3 views see
+        the voxel.
         """
+        if measure == "trimmed":
+            return self.trim
+        if measure == "normalized":
+            return self.chroma
         n = np.maximum(self.n_vis, 1)[:, None]
         mean = self.sums / n
         second = self.sq if measure == "pooled" else self.bw
@@ -112,3 +121,33 @@ def _rgb(mean, C):
 
 # =====================================================================
 # public
+
+
+def _trimmed_std(v_vis, v_sums, *, normalized=False):
+    """Between-view standard deviation without the most deviant view: (V, M), (V, M, C) -> (M,) grey levels.
+
+    ``normalized``: each view's mean colour is first scaled to the voxel's
+    mean brightness over the views (shading and exposure divided out; the
+    colour's hue and saturation remain), for RGB; grey images are unchanged.
+    """
+    w = v_vis.astype(np.float64)  # (V, M)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = np.where(w[:, :, None] > 0, v_sums / np.maximum(w, 1)[:, :, None], 0.0)
+    if normalized and means.shape[2] == 3:
+        lum = means.mean(axis=2)  # (V, M)
+        ref = (w * lum).sum(axis=0) / np.maximum(w.sum(axis=0), 1)  # (M,)
+        means = means * (ref[None, :] / np.maximum(lum, 1.0))[:, :, None]
+    def moments(weights):
+        n = weights.sum(axis=0)
+        mu = (weights[:, :, None] * means).sum(axis=0) / np.maximum(n, 1)[:, None]
+        var = (weights[:, :, None] * (means - mu) ** 2).sum(axis=0) / np.maximum(n, 1)[:, None]
+        return mu, var.mean(axis=1)
+    mu, var = moments(w)
+    n_views = np.count_nonzero(w > 0, axis=0)
+    dev = np.where(w > 0, ((means - mu) ** 2).sum(axis=2), -1.0)
+    worst = np.argmax(dev, axis=0)
+    w2 = w.copy()
+    drop = n_views >= 3
+    w2[worst[drop], np.flatnonzero(drop)] = 0.0
+    _, var2 = moments(w2)
+    return np.sqrt(np.maximum(np.where(drop, var2, var), 0.0))
