@@ -19,7 +19,7 @@ from ._visibility import check_ordinal_visibility
 
 #: How the pipeline colours: a measure blind to view-dependent shading and
 #: highlights, exposure normalised per view, the silhouette guard on.
-PIPELINE_OPTIONS = {"measure": "normalized", "exposure": True, "guard": True}
+PIPELINE_OPTIONS = {"measure": "shading", "exposure": True, "guard": True}
 
 
 def report_entry(result, candidates, grid):

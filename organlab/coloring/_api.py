@@ -17,7 +17,9 @@ from ._common import (
 from ._methods import _owned, _space_carving, _surface, _voxel_coloring
 from ._auto import auto_threshold, exposure_gains, image_noise, normalise
 from ._auto import guard as _guard
-from ._statistics import _rgb
+from ._statistics import _rgb, _Stats
+
+_MEASURES = ("pooled", "between", "trimmed", "normalized", "shading")
 
 
 def color_voxels(
@@ -69,14 +71,17 @@ def color_voxels(
     masks : sequence of (H, W) bool, optional
         Silhouettes (True = specimen).  Background pixels are never used for
         colours; a voxel seen mostly through background in a view is carved.
-    measure : {'pooled', 'between', 'trimmed', 'normalized'}
+    measure : {'pooled', 'between', 'trimmed', 'normalized', 'shading'}
         ``'pooled'``: the standard deviation of all visible pixels pooled
         over the views (Seitz & Dyer); ``'between'``: of the per-view mean
         colours (weighted by pixel counts), blind to the texture inside one
         footprint; ``'trimmed'``: ``'between'`` without the most deviant view
         (robust to a highlight seen in one view); ``'normalized'``: ``'trimmed'``
         of the per-view mean colours scaled to a common brightness (blind to
-        shading that changes with the view and to exposure; RGB only).
+        shading that changes with the view and to exposure; RGB only);
+        ``'shading'``: the spread of the view colours about a Lambertian
+        shading curve of the table angle (turntable, lamp fixed to the
+        camera), robust to one deviant view.
     support : int
         Spatial support of a carve: an inconsistent voxel is carved only if
         at least ``support`` inconsistent voxels (itself included) lie in its
@@ -130,19 +135,23 @@ def color_voxels(
     ):
         raise ValueError(f"threshold must be a number >= 0 (grey levels) or 'auto', got {threshold!r}")
     min_pix, min_frac = _completeness_rule(completeness)
-    if measure not in ("pooled", "between", "trimmed", "normalized"):
-        raise ValueError(f"measure must be 'pooled', 'between', 'trimmed' or 'normalized', got {measure!r}")
+    if measure not in _MEASURES:
+        raise ValueError(f"measure must be one of {_MEASURES}, got {measure!r}")
     if guard and masks is None:
         raise ValueError("guard=True needs the silhouettes (masks=)")
     if isinstance(support, bool) or not isinstance(support, (int, np.integer)) or not 1 <= support <= 27:
         raise ValueError(f"support must be an integer in 1..27 (voxels), got {support!r}")
     progress = progress or (lambda done, total: None)
 
-    stack, threshold, noise, gains = _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix)
-    run = _voxel_coloring if method == "voxel_coloring" else _space_carving
-    occ, colors, colored, counts, sweep, iterations = run(
-        stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress
-    )
+    _Stats.azimuth = np.array([np.arctan2(c.center[1], c.center[0]) for c in cameras]) if measure == "shading" else None
+    try:
+        stack, threshold, noise, gains = _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix)
+        run = _voxel_coloring if method == "voxel_coloring" else _space_carving
+        occ, colors, colored, counts, sweep, iterations = run(
+            stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress
+        )
+    finally:
+        _Stats.azimuth = None
     n_restored = 0
     if guard:
         occ, n_restored = _guard(occ, candidates, cameras, grid, masks)

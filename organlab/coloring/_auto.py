@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 #: Automatic threshold: median + AUTO_K robust standard deviations of the hull surface's measure.
-AUTO_K = 8.0
+AUTO_K = 6.0
 #: ... and at least NOISE_K times the pixel noise.
 NOISE_K = 3.0
 

@@ -12,6 +12,10 @@ _BG_VIEWS = 1
 class _Stats:
     """Pixel statistics of M voxels in V views, filled by the kernels, then pooled."""
 
+    #: (V,) azimuth of each view's camera centre about the world z axis, radians;
+    #: set by color_voxels for measure='shading' while it runs.
+    azimuth = None
+
     def __init__(self, V, M, C):
         self.v_vis = np.empty((V, M), np.int32)
         self.v_tot = np.empty((V, M), np.int32)
@@ -34,12 +38,14 @@ class _Stats:
         self.bgv = _seen_through(self.v_bg, self.v_cnt)
         self.trim = _trimmed_std(self.v_vis, self.v_sums)
         self.chroma = _trimmed_std(self.v_vis, self.v_sums, normalized=True)
+        self.fit = None if self.azimuth is None else _shading_fit_std(self.v_vis, self.v_sums, self.azimuth)
         return self
 
     def merge(self, other, rows):
         """Take the pooled statistics of ``rows`` from ``other``; returns self."""
-        for name in ("n_vis", "n_tot", "sums", "sq", "bw", "bgv", "trim", "chroma"):
-            getattr(self, name)[rows] = getattr(other, name)[rows]
+        for name in ("n_vis", "n_tot", "sums", "sq", "bw", "bgv", "trim", "chroma", "fit"):
+            if getattr(self, name) is not None:
+                getattr(self, name)[rows] = getattr(other, name)[rows]
         return self
 
     def mean(self):
@@ -59,6 +65,8 @@ class _Stats:
             return self.trim
         if measure == "normalized":
             return self.chroma
+        if measure == "shading":
+            return self.fit
         n = np.maximum(self.n_vis, 1)[:, None]
         mean = self.sums / n
         second = self.sq if measure == "pooled" else self.bw
@@ -151,3 +159,46 @@ def _trimmed_std(v_vis, v_sums, *, normalized=False):
     w2[worst[drop], np.flatnonzero(drop)] = 0.0
     _, var2 = moments(w2)
     return np.sqrt(np.maximum(np.where(drop, var2, var), 0.0))
+
+
+#: Views a voxel needs for the shading fit (fewer: the trimmed between-view spread).
+_FIT_MIN_VIEWS = 6
+
+
+def _shading_fit_std(v_vis, v_sums, azimuth):
+    """Spread of the per-view mean colours about a shading curve of the view's azimuth: (M,) grey levels.
+
+    On a turntable with the lamp fixed to the camera, a surface point's
+    Lambertian brightness varies with the table angle ``a`` as
+    ``c0 + c1 cos a + c2 sin a`` (while lit); a voxel that fills a
+    concavity sees different surface points, whose colours do not follow
+    one such curve.  Per channel, a weighted least-squares fit of that curve
+    over the views that see the voxel; the most deviant view is dropped
+    (a highlight) and the curve refitted; the result is the weighted RMS of
+    the residuals.  Voxels seen by fewer than ``_FIT_MIN_VIEWS`` views get
+    the trimmed between-view spread.
+    """
+    w = v_vis.astype(np.float64)  # (V, M)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        y = np.where(w[:, :, None] > 0, v_sums / np.maximum(w, 1)[:, :, None], 0.0)  # (V, M, C)
+    a = np.asarray(azimuth, np.float64)
+    basis = np.stack([np.ones_like(a), np.cos(a), np.sin(a)], axis=1)  # (V, 3)
+    n_views = np.count_nonzero(w > 0, axis=0)
+    fit_ok = n_views >= _FIT_MIN_VIEWS
+    out = _trimmed_std(v_vis, v_sums)
+    if not fit_ok.any():
+        return out
+    w, y = w[:, fit_ok], y[:, fit_ok]
+    for it in range(2):
+        A = np.einsum("vm,vi,vj->mij", w, basis, basis) + 1e-9 * np.eye(3)
+        rhs = np.einsum("vm,vi,vmc->mic", w, basis, y)
+        coef = np.linalg.solve(A, rhs)  # (M, 3, C)
+        res = y - np.einsum("vi,mic->vmc", basis, coef)
+        r2 = (res**2).mean(axis=2)  # (V, M)
+        if it == 0:
+            worst = np.argmax(np.where(w > 0, r2, -1.0), axis=0)
+            w = w.copy()
+            w[worst, np.arange(w.shape[1])] = 0.0
+    out = out.copy()
+    out[fit_ok] = np.sqrt((w * r2).sum(axis=0) / np.maximum(w.sum(axis=0), 1))
+    return out
