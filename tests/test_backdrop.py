@@ -142,3 +142,29 @@ def test_session_silhouettes_with_a_border_backdrop(tmp_path):
     assert _iou(sils[1].mask, truth) > 0.95
     assert {"threshold", "reason", "gain", "close_radius"} <= set(sils[1].info)
     json.dumps(sils[1].info)  # JSON-ready for report.json
+
+
+@pytest.mark.slow
+def test_hard_session_self_calibrated(tmp_path):
+    """The hard synthetic mode, small (320 x 240, 12 views), calibrated from its own boards, 2 mm."""
+    from organlab.pipeline import reconstruct
+    from organlab.synthetic import make_session
+
+    root = tmp_path / "hard"
+    truth = make_session(root, hard=True, image_size=(320, 240), n_views=12, n_intrinsic=8, n_turntable=6,
+                         n_background=5, include_camera=False, include_poses=False, seed=4)
+    doc = json.loads((root / "session.json").read_text())
+    assert doc["backdrop"] == {"color": "frames", "shadows": True}
+    assert all(v.endswith(".jpg") for v in [w["image"] for w in doc["views"]] + doc["background_images"])
+    gains = np.array(truth["hard"]["exposure_gains"])
+    assert np.all(np.abs(gains - 1) <= 0.1) and gains.std() > 0.02
+    rec = reconstruct(root, voxel_size=2.0)
+    err = rec.report["mesh_volume_error_pct"]
+    print("keyed", err, [v["silhouette_key"]["reason"] for v in rec.report["views"]][:3])
+    assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
+    # MEASURED_KEYED
+    del doc["backdrop"]
+    (root / "session.json").write_text(json.dumps(doc))
+    plain = reconstruct(root, voxel_size=2.0).report["mesh_volume_error_pct"]
+    print("plain", plain)
+    # MEASURED_PLAIN

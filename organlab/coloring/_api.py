@@ -144,6 +144,7 @@ def color_voxels(
     progress = progress or (lambda done, total: None)
 
     _Stats.azimuth = np.array([np.arctan2(c.center[1], c.center[0]) for c in cameras]) if measure == "shading" else None
+    _Stats.measure = measure
     try:
         stack, threshold, noise, gains = _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix)
         run = _voxel_coloring if method == "voxel_coloring" else _space_carving
@@ -151,7 +152,7 @@ def color_voxels(
             stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress
         )
     finally:
-        _Stats.azimuth = None
+        _Stats.azimuth = _Stats.measure = None
     n_restored = 0
     if guard:
         occ, n_restored = _guard(occ, candidates, cameras, grid, masks)

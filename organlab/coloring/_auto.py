@@ -41,21 +41,30 @@ def image_noise(stack):
     return float(np.median(out))
 
 
-def exposure_gains(st, min_views=3):
-    """Per-view gains ``(V,)`` from a pooled :class:`_Stats` of surface voxels (1 where unknown)."""
+def exposure_gains(st, min_views=3, iterations=8):
+    """Per-view gains ``(V,)`` from a pooled :class:`_Stats` of surface voxels (1 where unknown).
+
+    Alternates the voxels' mean brightness (over the views, each divided by
+    its gain) and each view's gain (the median ratio of its brightness to the
+    voxels' means), so that a voxel seen only by bright views does not bias
+    its neighbours' views; normalised to a geometric mean of 1.
+    """
     V = st.v_vis.shape[0]
     vis = st.v_vis > 0
     ok = np.count_nonzero(vis, axis=0) >= min_views
-    if not ok.any():
-        return np.ones(V)
-    luma = st.v_sums.mean(axis=2) / np.maximum(st.v_vis, 1)  # (V, M) per-view mean grey
-    mean = st.sums.mean(axis=1) / np.maximum(st.n_vis, 1)  # (M,)
     gains = np.ones(V)
-    for v in range(V):
-        sel = vis[v] & ok & (mean > 10.0)
-        if np.count_nonzero(sel) >= 20:
-            gains[v] = float(np.median(luma[v, sel] / mean[sel]))
-    return gains / np.exp(np.mean(np.log(gains)))
+    if not ok.any():
+        return gains
+    w = st.v_vis[:, ok].astype(np.float64)
+    luma = st.v_sums[:, ok].mean(axis=2) / np.maximum(w, 1)  # (V, M) per-view mean grey
+    for _ in range(iterations):
+        mean = (w * luma / gains[:, None]).sum(axis=0) / np.maximum(w.sum(axis=0), 1)
+        for v in range(V):
+            sel = (w[v] > 0) & (mean > 10.0)
+            if np.count_nonzero(sel) >= 20:
+                gains[v] = float(np.median(luma[v, sel] / mean[sel]))
+        gains = gains / np.exp(np.mean(np.log(gains)))
+    return gains
 
 
 def normalise(stack, gains):

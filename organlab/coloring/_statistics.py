@@ -15,6 +15,8 @@ class _Stats:
     #: (V,) azimuth of each view's camera centre about the world z axis, radians;
     #: set by color_voxels for measure='shading' while it runs.
     azimuth = None
+    #: The measure color_voxels runs with (the robust ones are computed only when asked for).
+    measure = None
 
     def __init__(self, V, M, C):
         self.v_vis = np.empty((V, M), np.int32)
@@ -36,9 +38,10 @@ class _Stats:
             per_view = np.where(self.v_vis[:, :, None] > 0, self.v_sums**2 / self.v_vis[:, :, None], 0.0)
         self.bw = per_view.sum(axis=0)
         self.bgv = _seen_through(self.v_bg, self.v_cnt)
-        self.trim = _trimmed_std(self.v_vis, self.v_sums)
-        self.chroma = _trimmed_std(self.v_vis, self.v_sums, normalized=True)
-        self.fit = None if self.azimuth is None else _shading_fit_std(self.v_vis, self.v_sums, self.azimuth)
+        m = self.measure
+        self.trim = _trimmed_std(self.v_vis, self.v_sums) if m == "trimmed" else None
+        self.chroma = _trimmed_std(self.v_vis, self.v_sums, normalized=True) if m == "normalized" else None
+        self.fit = _shading_fit_std(self.v_vis, self.v_sums, self.azimuth) if m == "shading" else None
         return self
 
     def merge(self, other, rows):
@@ -163,42 +166,53 @@ def _trimmed_std(v_vis, v_sums, *, normalized=False):
 
 #: Views a voxel needs for the shading fit (fewer: the trimmed between-view spread).
 _FIT_MIN_VIEWS = 6
+#: Harmonics of the table angle in the shading curve (2 fits a clipped cosine better, but absorbs
+#: more of a concavity's disagreement: measured worse on the dented specimen).
+_FIT_HARMONICS = 1
+#: Most deviant views dropped before the final fit (highlights, glints).
+_FIT_TRIM = 1
 
 
 def _shading_fit_std(v_vis, v_sums, azimuth):
     """Spread of the per-view mean colours about a shading curve of the view's azimuth: (M,) grey levels.
 
     On a turntable with the lamp fixed to the camera, a surface point's
-    Lambertian brightness varies with the table angle ``a`` as
-    ``c0 + c1 cos a + c2 sin a`` (while lit); a voxel that fills a
-    concavity sees different surface points, whose colours do not follow
-    one such curve.  Per channel, a weighted least-squares fit of that curve
-    over the views that see the voxel; the most deviant view is dropped
-    (a highlight) and the curve refitted; the result is the weighted RMS of
-    the residuals.  Voxels seen by fewer than ``_FIT_MIN_VIEWS`` views get
-    the trimmed between-view spread.
+    brightness is a smooth periodic function of the table angle ``a``
+    (Lambertian: a clipped cosine); a voxel that fills a concavity sees
+    different surface points, whose colours do not follow one smooth curve.
+    Per channel, a weighted least-squares fit of ``c0 + sum_k (ck cos ka +
+    sk sin ka)``, ``k <= _FIT_HARMONICS``, over the views that see the voxel;
+    the ``_FIT_TRIM`` most deviant views are dropped (highlights) and the
+    curve refitted; the result is the weighted RMS of the residuals.  Voxels
+    seen by fewer than ``_FIT_MIN_VIEWS`` views get the trimmed between-view
+    spread.
     """
     w = v_vis.astype(np.float64)  # (V, M)
     with np.errstate(invalid="ignore", divide="ignore"):
         y = np.where(w[:, :, None] > 0, v_sums / np.maximum(w, 1)[:, :, None], 0.0)  # (V, M, C)
     a = np.asarray(azimuth, np.float64)
-    basis = np.stack([np.ones_like(a), np.cos(a), np.sin(a)], axis=1)  # (V, 3)
+    cols = [np.ones_like(a)]
+    for k in range(1, _FIT_HARMONICS + 1):
+        cols += [np.cos(k * a), np.sin(k * a)]
+    basis = np.stack(cols, axis=1)  # (V, P)
+    P = basis.shape[1]
     n_views = np.count_nonzero(w > 0, axis=0)
     fit_ok = n_views >= _FIT_MIN_VIEWS
     out = _trimmed_std(v_vis, v_sums)
     if not fit_ok.any():
         return out
-    w, y = w[:, fit_ok], y[:, fit_ok]
-    for it in range(2):
-        A = np.einsum("vm,vi,vj->mij", w, basis, basis) + 1e-9 * np.eye(3)
+    w, y = w[:, fit_ok], y[:, fit_ok].copy()
+    cols_m = np.arange(w.shape[1])
+    for it in range(_FIT_TRIM + 1):
+        A = np.einsum("vm,vi,vj->mij", w, basis, basis) + 1e-6 * np.eye(P)
         rhs = np.einsum("vm,vi,vmc->mic", w, basis, y)
-        coef = np.linalg.solve(A, rhs)  # (M, 3, C)
-        res = y - np.einsum("vi,mic->vmc", basis, coef)
-        r2 = (res**2).mean(axis=2)  # (V, M)
-        if it == 0:
+        coef = np.linalg.solve(A, rhs)  # (M, P, C)
+        r2 = ((y - np.einsum("vi,mic->vmc", basis, coef)) ** 2).mean(axis=2)  # (V, M)
+        if it < _FIT_TRIM:
             worst = np.argmax(np.where(w > 0, r2, -1.0), axis=0)
             w = w.copy()
-            w[worst, np.arange(w.shape[1])] = 0.0
+            w[worst, cols_m] = 0.0
+    dof = np.maximum(np.count_nonzero(w > 0, axis=0) - P, 1) / np.maximum(np.count_nonzero(w > 0, axis=0), 1)
     out = out.copy()
-    out[fit_ok] = np.sqrt((w * r2).sum(axis=0) / np.maximum(w.sum(axis=0), 1))
+    out[fit_ok] = np.sqrt((w * r2).sum(axis=0) / np.maximum(w.sum(axis=0), 1) / dof)
     return out
