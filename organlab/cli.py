@@ -3,7 +3,7 @@
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
                          [--method hull|coloring|space_carving] [--color-threshold X]
     organlab calibrate SESSION [--figures DIR]
-    organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
+    organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -47,7 +47,8 @@ def _parser():
                    help="subvoxel: sub-pixel silhouettes, surface between voxel centres (default); "
                         "thesis: the thesis's 8-corner bounding-box test")
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
-                   help="photo-consistency threshold (grey levels) for --method coloring/space_carving")
+                   help="photo-consistency threshold (grey levels) for --method coloring/space_carving "
+                   "(default: automatic, from the hull's surface and the image noise; report.json coloring.threshold)")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
     r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
