@@ -43,9 +43,9 @@ class KeyInfo:
 
     threshold: float
     reason: str
-    noise: float
-    clutter: float
-    li: float
+    noise: float | None
+    clutter: float | None
+    li: float | None
     gain: float
     shadow_fraction: float
     close_radius: int
@@ -191,7 +191,7 @@ def key(image, background, *, threshold=None, shadows=True):
     if threshold is None:
         t, reason, noise, clutter, li = auto_key_threshold(d)
     else:
-        t, reason, noise, clutter, li = float(threshold), "given", float("nan"), float("nan"), float("nan")
+        t, reason, noise, clutter, li = float(threshold), "given", None, None, None
     mask, r = clean_scaled(d > t)
     info = KeyInfo(float(t), reason, noise, clutter, li, g, float(sh.mean()), r)
     return mask, d, info

@@ -141,8 +141,8 @@ def reconstruct(
         silhouettes; occupancy = voxel centres inside the hull, mesh = the
         field's 0.5 level, between voxel centres.
     color_threshold : float, optional
-        Photo-consistency threshold (grey levels of standard deviation, of the
-        brightness-normalised view colours); automatic when omitted
+        Photo-consistency threshold (grey levels: spread of the view colours
+        about a shading curve of the table angle); automatic when omitted
         (:data:`organlab.coloring.PIPELINE_OPTIONS`: exposure normalised,
         silhouette guard on).
     tolerance : int
