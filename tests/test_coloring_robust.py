@@ -202,3 +202,35 @@ def test_dino_backdrop_keying_matches_the_authors_masks(dino):
     # measured: mean 0.969, min 0.955 (the authors' masks are grown by 3 px; most of the rest is
     # their unfilled dark holes and the stand's top)
     assert np.mean(ious) > 0.96 and min(ious) > 0.945
+
+
+@needs_dino
+@pytest.mark.slow
+def test_dino_as_a_backdrop_session(dino, tmp_path):
+    """The photos as a session with a border backdrop (no masks, no frames), through organlab.pipeline at 2 mm."""
+    import shutil
+
+    from organlab.pipeline import reconstruct
+    from organlab.session import write_json
+
+    data, imgs, cams, masks = dino
+    good = [n for n, g in zip(data.names, data.good) if g]
+    (tmp_path / "views").mkdir()
+    for n in good:
+        shutil.copy(DATA / n, tmp_path / "views" / n)
+    K = cams[0].K
+    write_json(tmp_path / "session.json", {
+        "format": "organlab.session/1", "units": "mm", "image_size": [640, 480],
+        "camera": {"K": K.tolist(), "dist": [0, 0, 0, 0, 0]},
+        "views": [{"image": f"views/{n}", "angle_deg": 0.0, "pose": {"R": c.R.tolist(), "t": c.t.tolist()}}
+                  for n, c in zip(good, cams)],
+        "roi": {"min": (data.bbox[0] - 4.0).tolist(), "max": (data.bbox[1] + 4.0).tolist()},
+        "backdrop": {"color": "border"},
+    })
+    rec = reconstruct(tmp_path, voxel_size=2.0)
+    assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
+    ious = [((r := render_silhouette(c, mesh=rec.mesh)) & m).sum() / (r | m).sum() for c, m in zip(cams, masks)]
+    print(f"backdrop session, 2 mm: mean IoU {np.mean(ious):.4f}, min {np.min(ious):.4f}")
+    # measured 2 mm: mean 0.943; 1 mm: 0.950 (issue 13's 0.975 NOT met: the authors' silhouettes are grown
+    # by 3 px, docs/benchmarks.md); Li's threshold against a black frame reached 0.948 at 1 mm
+    assert np.mean(ious) > 0.935 and rec.mesh.is_watertight
