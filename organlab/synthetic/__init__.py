@@ -12,15 +12,20 @@ Scene (world frame = turntable frame, mm, Z up along the table axis):
   rotationally symmetric so it looks the same at every table angle;
 * a dark backdrop fixed to the camera (a function of the ray direction in the
   camera frame), so background frames match the views;
-* lighting fixed to the camera, mostly ambient with mild diffuse shading;
+* lighting fixed to the camera, mostly ambient with mild diffuse shading
+  (``hard=True``: a lamp with cast shadows, highlights, exposure changes of
+  +-10 % and JPEG views, see ``_hard``);
 * a checkerboard printed on a zero-thickness sheet, and a specimen
-  (:class:`AAAPhantom`, :class:`GroovedSpecimen`, :class:`Sphere`,
-  :class:`Cylinder`) standing on the plate.
+  (:class:`AAAPhantom`, :class:`GroovedSpecimen`, :class:`DentedSpecimen`,
+  :class:`Sphere`, :class:`Cylinder`) standing on the plate.
 
 ``python -m organlab.synthetic OUT --seed 0`` writes a complete session
 folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
-"""
 
+Private modules: ``_boards`` (camera, board poses and images), ``_specimens``,
+``_render`` (ray casting, shading), ``_hard`` (the hard lamp), ``_views``
+(views and silhouettes), ``_session`` (the session folder), ``_cli``.
+"""
 
 __all__ = [
     "DEFAULT_PATTERN",
