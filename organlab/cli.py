@@ -5,7 +5,7 @@
                          [--calibration PATH] [--recalibrate] [--measure] [--raw-surface]
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
     organlab mesh RESULT_DIR [--repair] [--smooth] [--remesh MM] [--tetra] [--measure] [--picture]
-    organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
+    organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [...]
     organlab view SESSION [--result DIR] [--port P] [--host H] [--voxel-size MM]
 
@@ -51,7 +51,8 @@ def _parser():
                    help="subvoxel: sub-pixel silhouettes, surface between voxel centres (default); "
                         "thesis: the thesis's 8-corner bounding-box test")
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
-                   help="photo-consistency threshold (grey levels) for --method coloring/space_carving")
+                   help="photo-consistency threshold (grey levels) for --method coloring/space_carving "
+                   "(default: automatic, from the hull's surface and the image noise; report.json coloring.threshold)")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
     r.add_argument("--calibration", type=Path, default=None, metavar="PATH",
                    help="use this calibration.json (checked against the session) instead of the session's own")

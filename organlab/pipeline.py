@@ -214,7 +214,10 @@ def reconstruct(
         silhouettes; occupancy = voxel centres inside the hull, mesh = the
         field's 0.5 level, between voxel centres.
     color_threshold : float, optional
-        Photo-consistency threshold (grey levels of standard deviation).
+        Photo-consistency threshold (grey levels: spread of the view colours
+        about a shading curve of the table angle); automatic when omitted
+        (:data:`organlab.coloring.PIPELINE_OPTIONS`: exposure normalised,
+        silhouette guard on).
     tolerance : int
         Views allowed to disagree before a voxel is carved.
     calibration : Calibration or str or Path, optional
@@ -254,14 +257,17 @@ def reconstruct(
             f"{session.json_path}: carving left no voxel: the silhouettes do not agree with the cameras "
             "(check the calibration, the roi and the threshold)"
         )
-    colors = colored = None
+    colors = colored = coloring_info = None
     if method != "hull":
         res = stages.run("coloring", _color, images, cameras, occupancy, grid, sils, method, color_threshold)
+        coloring_info = _coloring_report(res, occupancy, grid)
         occupancy, colors, colored = res.occupancy, res.colors, res.colored
     raw_mesh, mesh, aaa, extra = stages.run("surface", _surface, session, occupancy, field, colors, colored, grid,
                                             finish=finish, measure=measure)
     report = _report(session, grid, occupancy, mesh, cameras, cal, how, sils, stages.timings, method, hull)
     report.update(extra)
+    if coloring_info is not None:
+        report["coloring"] = coloring_info
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal, raw_mesh, aaa)
 
 
@@ -288,11 +294,17 @@ def _finish_and_measure(session, mesh, volume, grid, finish, measure):
 
 
 def _color(images, cameras, occupancy, grid, sils, method, color_threshold, *, progress):
-    from .coloring import color_voxels
+    from .coloring import PIPELINE_OPTIONS, color_voxels
 
-    kw = {} if color_threshold is None else {"threshold": color_threshold}
     kind = "voxel_coloring" if method == "coloring" else "space_carving"
-    return color_voxels(images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=progress, **kw)
+    return color_voxels(images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=progress,
+                        threshold="auto" if color_threshold is None else color_threshold, **PIPELINE_OPTIONS)
+
+
+def _coloring_report(res, hull, grid):
+    from .coloring import report_entry
+
+    return report_entry(res, hull, grid)
 
 
 def _report(session, grid, occupancy, mesh, cameras, cal, how, sils, timings, method, hull):
@@ -319,7 +331,8 @@ def _report(session, grid, occupancy, mesh, cameras, cal, how, sils, timings, me
         "calibration": {"source": how, "rms_px": cal.rms_px, "turntable_rms_px": cal.turntable_rms_px},
         "views": [
             {"image": session.relpath(v.image), "angle_deg": v.angle_deg, "R": c.R.tolist(), "t": c.t.tolist(),
-             "silhouette_threshold": s.threshold, "silhouette_source": s.source}
+             "silhouette_threshold": s.threshold, "silhouette_source": s.source,
+             **({"silhouette_key": s.info} if getattr(s, "info", None) else {})}
             for v, c, s in zip(session.views, cameras, sils)
         ],
         "camera": camera,

@@ -79,6 +79,7 @@ class Session:
     reference: dict = field(default_factory=dict)
     calibration: dict | None = None  # contents of calibration.json when present
     raw: dict = field(default_factory=dict)
+    backdrop: dict | None = None  # {"color": (3,) float RGB | "border" | "frames", "shadows": bool}
 
     @property
     def json_path(self):
@@ -218,7 +219,8 @@ def load_session(path, *, check_images=True):
     camera = _camera(raw, size, sj)
     calibration = _calibration_json(root / "calibration.json")
     views = _views(raw, root, sj)
-    _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration)
+    backdrop = _parse_backdrop(raw.get("backdrop"), sj, background)
+    _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration, backdrop)
     session = Session(
         root=root,
         name=str(raw.get("name", root.name)),
@@ -234,6 +236,7 @@ def load_session(path, *, check_images=True):
         reference=_reference(raw, sj),
         calibration=calibration,
         raw=raw,
+        backdrop=backdrop,
     )
     if check_images:
         _check_images(session)
@@ -381,7 +384,7 @@ def _views(raw, root, sj):
     return views
 
 
-def _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration):
+def _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration, backdrop):
     """What each view needs: intrinsics, a pose or a turntable, a mask or background frames."""
     have_intrinsics = camera is not None or bool(intrinsic) or calibration is not None
     have_turntable = bool(turntable) or bool(calibration and calibration.get("turntable"))
@@ -398,8 +401,8 @@ def _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, c
     if (intrinsic or turntable) and pattern is None and calibration is None:
         if camera is None or any(v.pose is None for v in views):
             _fail(sj, "pattern", "is required to calibrate from board images: {'inner_corners': [cols, rows], 'square_size': mm}")
-    if any(v.mask is None for v in views) and not background:
-        _fail(sj, "background_images", "views without 'mask' need background frames for the silhouettes")
+    if any(v.mask is None for v in views) and not background and backdrop is None:
+        _fail(sj, "background_images", "views without 'mask' need background frames or a 'backdrop' for the silhouettes")
 
 
 def _reference(raw, sj):
@@ -409,6 +412,32 @@ def _reference(raw, sj):
     if "volume_mm3" in reference and not (isinstance(reference["volume_mm3"], (int, float)) and reference["volume_mm3"] > 0):
         _fail(sj, "reference.volume_mm3", "must be a positive number")
     return dict(reference)
+
+
+def _parse_backdrop(value, sj, background):
+    """The ``backdrop`` key (docs/session-format-backdrop.md): None or ``{"color": ..., "shadows": bool}``."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or "color" not in value:
+        _fail(sj, "backdrop", "must be an object {'color': [r, g, b] | 'border' | 'frames'} (optional 'shadows': true/false)")
+    unknown = sorted(set(value) - {"color", "shadows"})
+    if unknown:
+        _fail(sj, "backdrop", f"unknown key(s) {unknown}; allowed: 'color', 'shadows'")
+    color = value["color"]
+    if isinstance(color, str):
+        if color not in ("border", "frames"):
+            _fail(sj, "backdrop.color", f"must be [r, g, b] (0-255), 'border' or 'frames', got {color!r}")
+        if color == "frames" and not background:
+            _fail(sj, "backdrop.color", "'frames' needs background_images; use 'border' or a colour [r, g, b]")
+    else:
+        rgb = _matrix(color, (3,), sj, "backdrop.color")
+        if np.any(rgb < 0) or np.any(rgb > 255):
+            _fail(sj, "backdrop.color", f"must be RGB in 0-255, got {rgb.tolist()}")
+        color = tuple(float(c) for c in rgb)
+    shadows = value.get("shadows", True)
+    if not isinstance(shadows, bool):
+        _fail(sj, "backdrop.shadows", f"must be true or false, got {shadows!r}")
+    return {"color": color, "shadows": shadows}
 
 
 def _check_images(s):

@@ -180,12 +180,17 @@ def test_coloring_method_writes_colors_and_carves_hidden_grooves(tmp_path):
     hull = reconstruct(root, voxel_size=2.0)
     col = reconstruct(root, voxel_size=2.0, method="coloring")
     assert "coloring" in col.report["timings_s"] and col.report["method"] == "coloring"
+    c = col.report["coloring"]  # the colour threshold used and what colouring removed from the hull
+    assert c["automatic"] is True and c["threshold"] > 0
+    assert c["removed_volume_mm3"] == pytest.approx(hull.grid.volume_of(hull.occupancy) - col.grid.volume_of(col.occupancy))
     inside = spec.inside(hull.grid.centers()).reshape(hull.grid.shape)
     excess_hull = (hull.occupancy & ~inside).sum()
     excess_col = (col.occupancy & ~inside).sum()
-    # measured: 2377 -> 1286 excess voxels; 2.6 % of the true voxels lost besides the
+    # measured with the fixed threshold 18 tuned on this specimen: 2377 -> 1286 excess voxels, 2.6 % of
+    # the true voxels lost; with the pipeline's automatic threshold and shading-robust measure
+    # (issue 13: no cliff on scenes the defaults never saw): 2377 -> 1862, 0.04 % lost besides the
     # 2.1 % the sub-voxel hull already misses at 2 mm (18 views of 320 x 240)
-    assert excess_col < 0.7 * excess_hull
+    assert excess_col < 0.85 * excess_hull
     lost_more = (~col.occupancy & inside).sum() - (~hull.occupancy & inside).sum()
     assert lost_more < 0.035 * inside.sum()
     assert abs(col.mesh.volume / spec.volume - 1) < abs(hull.mesh.volume / spec.volume - 1)

@@ -284,7 +284,7 @@ def test_mask_area_matches_the_projected_outline_of_a_sphere():
 
 
 def test_background_is_the_same_at_every_table_angle(aaa):
-    from organlab import _render
+    from organlab.synthetic import _render
 
     cam = syn.default_camera((320, 240))
     _render._BG_CACHE.clear()
@@ -377,3 +377,18 @@ def test_every_intrinsic_board_is_detected(cam):
         img = syn.render_board(cam0, R, t, supersample=2, table=False, noise_sigma=1.0, seed=k)
         uv = cam0.project(syn.board_object_points() @ R.T + t)
         assert _rms_to(_detect(img), uv) < 0.12, k
+
+
+def test_cli_refuses_a_folder_that_is_not_empty_without_force(tmp_path, capsys):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(SystemExit) as e:
+        syn.main([str(out), "--small"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "not empty" in err and "--force" in err
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # nothing written
+    assert syn.main([str(out), "--small", "--force", "--seed", "2"]) == 0
+    assert (out / "notes.txt").read_text() == "mine"  # --force replaces only what the generator writes
+    assert len(json.loads((out / "session.json").read_text())["views"]) == 12

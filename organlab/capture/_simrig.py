@@ -378,7 +378,7 @@ class SimCamera(CaptureCamera):
         return self.rig.camera_model.image_size
 
     def _clean(self):
-        from .. import _render
+        from ..synthetic import _render
         from ..synthetic import BOARD_MARGIN, turntable_board_pose
 
         rig = self.rig
@@ -406,7 +406,7 @@ class SimCamera(CaptureCamera):
         self._frame += 1  # a frame passes (nothing to render: it is thrown away)
 
     def _read(self):
-        from .. import _render
+        from ..synthetic import _render
 
         self._frame += 1
         rng = np.random.default_rng([self.rig.seed, 99, self._frame])

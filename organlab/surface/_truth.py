@@ -15,7 +15,7 @@ import numpy as np
 
 
 def _star_samples(star, h):
-    from .. import _render
+    from ..synthetic import _render
 
     z = np.arange(star.z_lo, star.z_hi + h / 2, h)
     z[-1] = min(z[-1], star.z_hi)
@@ -80,7 +80,8 @@ def surface_samples(specimen, *, spacing=0.25):
     -------
     points, normals : (N, 3) float64, mm, world frame; unit normals
     """
-    from ..synthetic import Cylinder, Sphere, _ClippedCylinder, _StarSolid
+    from ..synthetic import Cylinder, Sphere
+    from ..synthetic._specimens import _ClippedCylinder, _StarSolid
 
     if isinstance(specimen, Sphere):
         n = int(4 * np.pi * specimen.radius**2 / spacing**2)

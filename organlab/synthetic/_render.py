@@ -11,7 +11,7 @@ from functools import lru_cache
 import numba
 import numpy as np
 
-from .camera import Camera
+from ..camera import Camera
 
 # Lighting fixed relative to the camera: mostly ambient, mild diffuse.
 AMBIENT = 0.82

@@ -1,0 +1,80 @@
+"""Synthetic sessions: a known camera, a known specimen, rendered images.
+
+Every image is ray cast through the full :class:`~organlab.camera.Camera`
+model (``Camera.rays`` of supersampled sub-pixel positions, box filter), so
+the lens distortion in the images is exactly the one ``Camera.project``
+models, and sub-pixel methods (corner detection, silhouettes) can be tested
+against the truth.
+
+Scene (world frame = turntable frame, mm, Z up along the table axis):
+
+* a turntable plate, a grey disk of radius 125 mm whose top is ``z = 0``,
+  rotationally symmetric so it looks the same at every table angle;
+* a dark backdrop fixed to the camera (a function of the ray direction in the
+  camera frame), so background frames match the views;
+* lighting fixed to the camera, mostly ambient with mild diffuse shading
+  (``hard=True``: a lamp with cast shadows, highlights, exposure changes of
+  +-10 % and JPEG views, see ``_hard``);
+* a checkerboard printed on a zero-thickness sheet, and a specimen
+  (:class:`AAAPhantom`, :class:`GroovedSpecimen`, :class:`DentedSpecimen`,
+  :class:`Sphere`, :class:`Cylinder`) standing on the plate.
+
+``python -m organlab.synthetic OUT --seed 0`` writes a complete session
+folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
+
+Private modules: ``_boards`` (camera, board poses and images), ``_specimens``,
+``_render`` (ray casting, shading), ``_hard`` (the hard lamp), ``_views``
+(views and silhouettes), ``_session`` (the session folder), ``_cli``.
+"""
+
+__all__ = [
+    "DEFAULT_PATTERN",
+    "default_camera",
+    "board_object_points",
+    "board_outline",
+    "turntable_board_pose",
+    "turntable_board_points",
+    "intrinsic_board_poses",
+    "render_board",
+    "tissue_albedo",
+    "Specimen",
+    "Sphere",
+    "Cylinder",
+    "AAAPhantom",
+    "GroovedSpecimen",
+    "DentedSpecimen",
+    "striped_albedo",
+    "make_specimen",
+    "render_view",
+    "render_masks",
+    "make_session",
+    "with_true_cameras",
+    "DEFAULT_ROI",
+]
+
+from ._boards import (
+    BOARD_CENTER_XY,
+    BOARD_MARGIN,
+    DEFAULT_PATTERN,
+    board_object_points,
+    board_outline,
+    default_camera,
+    intrinsic_board_poses,
+    render_board,
+    turntable_board_points,
+    turntable_board_pose,
+)
+from ._cli import main
+from ._session import DEFAULT_ROI, make_session, with_true_cameras
+from ._specimens import (
+    AAAPhantom,
+    Cylinder,
+    DentedSpecimen,
+    GroovedSpecimen,
+    Specimen,
+    Sphere,
+    make_specimen,
+    striped_albedo,
+    tissue_albedo,
+)
+from ._views import render_masks, render_view

@@ -1,0 +1,465 @@
+"""Synthetic specimens: analytic solids with known volumes, their tissue texture."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import _as_points
+
+from . import _render
+
+
+def _texture_waves(seed):
+    rng = np.random.default_rng([int(seed), 4242])
+    n = 10
+    k = rng.normal(size=(n, 3))
+    k /= np.linalg.norm(k, axis=1, keepdims=True)
+    lam = rng.uniform(12.0, 40.0, size=n)
+    k *= (2 * np.pi / lam)[:, None]
+    phase = rng.uniform(0, 2 * np.pi, size=n)
+    amp = rng.uniform(0.6, 1.0, size=n)
+    k2 = rng.normal(size=(3, 3))
+    k2 /= np.linalg.norm(k2, axis=1, keepdims=True)
+    k2 *= (2 * np.pi / rng.uniform(9.0, 16.0, size=3))[:, None]
+    phase2 = rng.uniform(0, 2 * np.pi, size=3)
+    return k, phase, amp, k2, phase2
+
+
+_DARK = np.array([122.0, 44.0, 52.0])
+_LIGHT = np.array([236.0, 176.0, 142.0])
+_SPOT = np.array([112.0, 64.0, 150.0])
+
+
+def tissue_albedo(points, *, seed=0):
+    """Smooth, high-contrast, reddish tissue-like colour of surface points.
+
+    Blotches from a sum of 3-D plane waves (wavelengths 12-40 mm) between a
+    dark and a light red, with purple spots; a function of the point in the
+    table frame, so it moves with the specimen.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, mm, world (table) frame
+
+    Returns
+    -------
+    (N, 3) float64
+        RGB albedo, 0-255 scale (grey levels about 60-200).
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    k, phase, amp, k2, phase2 = _texture_waves(seed)
+    v = np.einsum("ij,j->i", np.sin(np.einsum("ij,kj->ik", p, k) + phase), amp) / np.sqrt(np.sum(amp**2) / 2)
+    s = 0.5 + 0.5 * np.tanh(1.3 * v)
+    col = _DARK + s[:, None] * (_LIGHT - _DARK)
+    w = np.prod(0.5 + 0.5 * np.sin(np.einsum("ij,kj->ik", p, k2) + phase2), axis=1)
+    spot = np.clip((w - 0.35) / 0.25, 0.0, 1.0)
+    spot = spot * spot * (3 - 2 * spot)
+    return col + spot[:, None] * (_SPOT - col)
+
+
+class Specimen:
+    """A solid with an exactly known volume, standing on (or above) the table.
+
+    Attributes
+    ----------
+    name : str
+    volume : float
+        Exact volume, mm^3.
+    bounds : ((3,), (3,)) float64
+        Axis-aligned box holding the solid, mm, world frame.
+    """
+
+    name = "specimen"
+    texture_seed = 0
+
+    def inside(self, points):
+        """Membership test: ``(N,)`` bool for ``points (N, 3)`` mm, world frame (boundary counts as inside)."""
+        p = _as_points(points)
+        return self._inside(p)
+
+    def albedo(self, points):
+        """Texture colour ``(N, 3)`` float64 RGB (0-255) at surface ``points (N, 3)``, mm, world frame."""
+        return tissue_albedo(points, seed=self.texture_seed)
+
+    def intersect(self, origins, directions):
+        """First intersection of rays with the solid.
+
+        Parameters
+        ----------
+        origins, directions : (N, 3) float64
+            World frame, mm; directions unit vectors.
+
+        Returns
+        -------
+        t : (N,) float64, mm
+            Distance along the ray to the first hit, ``inf`` for a miss.
+        normals : (N, 3) float64
+            Outward unit normals at the hits (zeros for misses).
+        """
+        o = _as_points(origins, "origins")
+        d = _as_points(directions, "directions")
+        if o.shape != d.shape:
+            o = np.broadcast_to(o, d.shape)
+        return self._intersect(o, d, t_max=None)
+
+    def __repr__(self):
+        return f"{type(self).__name__}(name={self.name!r}, volume={self.volume:.6g} mm^3)"
+
+
+def _tmax(t_max, n):
+    return np.full(n, np.inf) if t_max is None else np.asarray(t_max, dtype=np.float64)
+
+
+class Sphere(Specimen):
+    """A ball of radius ``radius`` mm centred at ``center`` (world frame, mm)."""
+
+    def __init__(self, center=(0.0, 0.0, 40.0), radius=30.0, *, name="sphere"):
+        self.center = np.asarray(center, dtype=np.float64).reshape(3)
+        self.radius = float(radius)
+        if not self.radius > 0:
+            raise ValueError(f"radius must be > 0 mm, got {radius}")
+        self.name = name
+        self.volume = 4.0 / 3.0 * np.pi * self.radius**3
+        self.bounds = (self.center - self.radius, self.center + self.radius)
+
+    def _inside(self, p):
+        return np.sum((p - self.center) ** 2, axis=1) <= self.radius**2
+
+    def _intersect(self, o, d, t_max=None):
+        oc = o - self.center
+        b = np.sum(oc * d, axis=1)
+        c = np.sum(oc * oc, axis=1) - self.radius**2
+        disc = b * b - c
+        with np.errstate(invalid="ignore"):
+            t = -b - np.sqrt(disc)
+        ok = (disc > 0) & (t > 0) & (t < _tmax(t_max, len(d)))
+        t = np.where(ok, t, np.inf)
+        normals = np.zeros_like(d)
+        normals[ok] = (oc[ok] + t[ok, None] * d[ok]) / self.radius
+        return t, normals
+
+
+class _ClippedCylinder:
+    """{dist(p, axis line) <= radius, z0 <= z <= z1}: a straight, possibly tilted, cylinder cut by two horizontal planes."""
+
+    def __init__(self, point, axis, radius, z0, z1):
+        self.point = np.asarray(point, dtype=np.float64)
+        a = np.asarray(axis, dtype=np.float64)
+        self.axis = a / np.linalg.norm(a)
+        self.radius = float(radius)
+        self.z0, self.z1 = float(z0), float(z1)
+
+    @property
+    def volume(self):
+        # horizontal sections: ellipses of area pi rho^2 / cos(theta)
+        return np.pi * self.radius**2 * (self.z1 - self.z0) / abs(self.axis[2])
+
+    def _inside(self, p):
+        q = p - self.point
+        perp = q - np.outer(np.einsum("ij,j->i", q, self.axis), self.axis)
+        return (np.sum(perp**2, axis=1) <= self.radius**2) & (p[:, 2] >= self.z0) & (p[:, 2] <= self.z1)
+
+    def _intersect(self, o, d, t_max=None):
+        n = len(d)
+        u = self.axis
+        q = o - self.point
+        dp = d - np.outer(np.einsum("ij,j->i", d, u), u)
+        qp = q - np.outer(np.einsum("ij,j->i", q, u), u)
+        a = np.sum(dp * dp, axis=1)
+        b = np.sum(dp * qp, axis=1)
+        c = np.sum(qp * qp, axis=1) - self.radius**2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            disc = b * b - a * c
+            sq = np.sqrt(disc)
+            ca = np.where(a > 1e-15, (-b - sq) / a, np.where(c <= 0, -np.inf, np.inf))
+            cb = np.where(a > 1e-15, (-b + sq) / a, np.where(c <= 0, np.inf, -np.inf))
+            za = (self.z0 - o[:, 2]) / d[:, 2]
+            zb = (self.z1 - o[:, 2]) / d[:, 2]
+        flat = np.abs(d[:, 2]) < 1e-15
+        inslab = (o[:, 2] >= self.z0) & (o[:, 2] <= self.z1)
+        s0 = np.where(flat, np.where(inslab, -np.inf, np.inf), np.minimum(za, zb))
+        s1 = np.where(flat, np.where(inslab, np.inf, -np.inf), np.maximum(za, zb))
+        tin = np.maximum(ca, s0)
+        tout = np.minimum(cb, s1)
+        ok = (disc > 0) & (tin < tout) & (tin > 0) & (tin < _tmax(t_max, n))
+        t = np.where(ok, tin, np.inf)
+        normals = np.zeros_like(d)
+        side = ok & (ca >= s0)
+        cap = ok & ~side
+        ps = q[side] + t[side, None] * d[side]
+        radial = ps - np.outer(np.einsum("ij,j->i", ps, u), u)
+        normals[side] = radial / np.linalg.norm(radial, axis=1, keepdims=True)
+        normals[cap, 2] = -np.sign(d[cap, 2])
+        return t, normals
+
+
+class Cylinder(Specimen):
+    """A vertical circular cylinder: axis through ``center_xy``, radius mm, from ``z0`` to ``z1`` mm."""
+
+    def __init__(self, center_xy=(0.0, 0.0), radius=30.0, z0=0.0, z1=80.0, *, name="cylinder"):
+        if not radius > 0 or not z1 > z0:
+            raise ValueError(f"need radius > 0 and z1 > z0, got radius={radius}, z0={z0}, z1={z1}")
+        cx, cy = (float(v) for v in center_xy)
+        self._cyl = _ClippedCylinder((cx, cy, 0.0), (0.0, 0.0, 1.0), radius, z0, z1)
+        self.name = name
+        self.volume = self._cyl.volume
+        self.bounds = (np.array([cx - radius, cy - radius, z0]), np.array([cx + radius, cy + radius, z1]))
+
+    def _inside(self, p):
+        return self._cyl._inside(p)
+
+    def _intersect(self, o, d, t_max=None):
+        return self._cyl._intersect(o, d, t_max)
+
+
+class _StarSolid:
+    """{rho <= r(phi, z), z_lo <= z <= z_hi} with r a sum of separable terms (see ``_render``)."""
+
+    _cache = {}
+
+    def __init__(self, terms, z_lo, z_hi):
+        self.terms = np.ascontiguousarray(terms, dtype=np.float64)
+        self.z_lo, self.z_hi = float(z_lo), float(z_hi)
+        key = (self.terms.tobytes(), self.z_lo, self.z_hi)
+        if key in self._cache:
+            self.r_min, self.r_max, self.lip, self.volume = self._cache[key]
+            return
+        phi = np.linspace(0, 2 * np.pi, 1441)
+        z = np.linspace(self.z_lo - 5, self.z_hi + 5, 601)
+        P, Z = np.meshgrid(phi, z)
+        r, rp, rz = _render.star_radius(P.ravel(), Z.ravel(), self.terms)
+        self.r_min = float(r.min())
+        if self.r_min <= 0:
+            raise ValueError("star solid radius must stay > 0")
+        self.r_max = float(r.max()) * 1.02 + 0.5
+        # Lipschitz bound of f = rho - r(phi, z) where rho >= r_min (with a safety factor)
+        self.lip = 1.25 * float(np.sqrt(1.0 + (np.abs(rp).max() / self.r_min) ** 2 + np.abs(rz).max() ** 2))
+        self.volume = self._volume()
+        self._cache[key] = (self.r_min, self.r_max, self.lip, self.volume)
+
+    def radius(self, phi, z):
+        phi, z = np.broadcast_arrays(np.asarray(phi, float), np.asarray(z, float))
+        r, _, _ = _render.star_radius(phi.ravel().copy(), z.ravel().copy(), self.terms)
+        return r.reshape(phi.shape)
+
+    def _volume(self, n_gauss=48, n_phi=2048):
+        # breakpoints of the piecewise-smooth z profile
+        br = {self.z_lo, self.z_hi}
+        for row in self.terms:
+            if row[1] != 0:
+                br.update(v for v in row[2:4] if self.z_lo < v < self.z_hi)
+        br = np.array(sorted(br))
+        x, w = np.polynomial.legendre.leggauss(n_gauss)
+        phi = np.arange(n_phi) * (2 * np.pi / n_phi)
+        total = 0.0
+        for a, b in zip(br[:-1], br[1:]):
+            z = 0.5 * (b - a) * x + 0.5 * (a + b)
+            r = self.radius(phi[None, :], z[:, None])
+            area = 0.5 * np.mean(r**2, axis=1) * 2 * np.pi  # periodic trapezoid rule
+            total += 0.5 * (b - a) * np.dot(w, area)
+        return float(total)
+
+    def _inside(self, p):
+        rho = np.hypot(p[:, 0], p[:, 1])
+        z = p[:, 2]
+        ok = (z >= self.z_lo) & (z <= self.z_hi) & (rho <= self.r_max)
+        out = np.zeros(len(p), dtype=bool)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            r = self.radius(np.arctan2(p[idx, 1], p[idx, 0]), z[idx])
+            out[idx] = rho[idx] <= r
+        return out
+
+    def _intersect(self, o, d, t_max=None):
+        n = len(d)
+        o = np.ascontiguousarray(o, dtype=np.float64)
+        d = np.ascontiguousarray(d, dtype=np.float64)
+        t, kind = _render.star_trace(
+            o, d, _tmax(t_max, n), self.terms, self.z_lo, self.z_hi, self.r_max, self.lip, 0.02, 1e-5
+        )
+        normals = np.zeros_like(d)
+        normals[kind == 2, 2] = 1.0
+        normals[kind == 3, 2] = -1.0
+        side = np.flatnonzero(kind == 1)
+        if side.size:
+            p = o[side] + t[side, None] * d[side]
+            phi = np.arctan2(p[:, 1], p[:, 0])
+            rho = np.hypot(p[:, 0], p[:, 1])
+            _, rp, rz = _render.star_radius(phi, p[:, 2].copy(), self.terms)
+            c, s = np.cos(phi), np.sin(phi)
+            gphi = -rp / rho
+            g = np.stack([c - s * gphi, s + c * gphi, -rz], axis=1)
+            normals[side] = g / np.linalg.norm(g, axis=1, keepdims=True)
+        return t, normals
+
+
+class _Union(Specimen):
+    def __init__(self, parts, volume, bounds, name):
+        self.parts = parts
+        self.volume = float(volume)
+        self.bounds = bounds
+        self.name = name
+
+    def _inside(self, p):
+        out = np.zeros(len(p), dtype=bool)
+        for part in self.parts:
+            out |= part._inside(p)
+        return out
+
+    def _intersect(self, o, d, t_max=None):
+        t_best = _tmax(t_max, len(d)).copy()
+        normals = np.zeros_like(d)
+        hit_any = np.zeros(len(d), dtype=bool)
+        for part in self.parts:
+            t, nrm = part._intersect(o, d, t_best)
+            closer = t < t_best
+            t_best[closer] = t[closer]
+            normals[closer] = nrm[closer]
+            hit_any |= closer
+        return np.where(hit_any, t_best, np.inf), normals
+
+
+class AAAPhantom(_Union):
+    """An abdominal-aortic-aneurysm-like phantom standing on the table (z >= 0).
+
+    Above ``z_b`` (the bifurcation) a solid star-shaped about the Z axis,
+    ``rho <= r(phi, z)``, closed by a flat cap at the top: the infrarenal
+    aorta (diameter about 25 mm, flaring slightly toward the bifurcation)
+    with an asymmetric fusiform aneurysm (maximum diameter about 54 mm).
+    Below ``z_b`` two straight tilted circular cylinders (the iliac legs),
+    clipped by ``z = 0`` and ``z = z_b``, whose horizontal sections are
+    disjoint ellipses inside the aorta's section at ``z_b``.
+
+    The volume is exact: ``int 0.5 r^2 dphi dz`` by Gauss-Legendre in z
+    (per smooth piece) and the periodic trapezoid rule in phi (spectrally
+    exact), plus ``2 pi rho^2 z_b / cos(theta)`` for the legs.
+    """
+
+    def __init__(self, *, name="aaa"):
+        z_b, z_top = 32.0, 172.0
+        r_aorta = 12.6
+        terms = [
+            [r_aorta, 0, 0, 0, 0, 0, 0],
+            [1.6, 2, z_b, z_b + 22.0, 0, 0, 0],  # flare toward the bifurcation
+            [-0.8, 1, z_b + 90.0, z_top + 60.0, 0, 0, 0],  # gentle taper toward the top
+            [13.4, 1, 42.0, 158.0, 0, 0, 0],  # fusiform aneurysm
+            [2.4, 1, 42.0, 158.0, 1, 1, 0.6],  # anterior asymmetry
+            [2.0, 1, 70.0, 130.0, 2, 3.0, 0.9],  # a bleb, left-anterior
+            [0.5, 1, 42.0, 158.0, 1, 2, 0.3],  # slight ovality
+        ]
+        star = _StarSolid(np.array(terms, dtype=np.float64), z_b, z_top)
+        r_b = float(star.radius(np.linspace(0, 2 * np.pi, 721), np.full(721, z_b)).min())
+        theta = np.deg2rad(18.0)
+        psi = np.deg2rad(12.0)
+        rho = 5.9
+        A = rho / np.cos(theta)  # semi-axis of a leg's section along its tilt
+        c = A + 0.45 * (r_b - 2 * A)  # ellipse centres at z_b: disjoint, inside the aorta
+        assert c + A < r_b and c > A, "iliac legs must fit inside the aorta at z_b"
+        legs = []
+        for sgn in (1.0, -1.0):
+            e = sgn * np.array([np.cos(psi), np.sin(psi), 0.0])
+            axis = np.array([e[0] * np.sin(theta), e[1] * np.sin(theta), -np.cos(theta)])
+            legs.append(_ClippedCylinder(np.array([c * e[0], c * e[1], z_b]), axis, rho, 0.0, z_b))
+        volume = star.volume + sum(leg.volume for leg in legs)
+        reach = max(star.r_max, c + z_b * np.tan(theta) + A)
+        bounds = (np.array([-reach, -reach, 0.0]), np.array([reach, reach, z_top]))
+        super().__init__([star, *legs], volume, bounds, name)
+        self.star = star
+        self.legs = legs
+        self.z_b = z_b
+        self.height = z_top
+
+
+class GroovedSpecimen(_Union):
+    """A textured star-shaped prism with hidden pockets no silhouette shows.
+
+    ``rho <= r(phi, z)``, ``0 <= z <= height``: a rounded trefoil-ish
+    section (radius about 30 mm) with ``n_grooves`` narrow vertical dents,
+    ``depth`` mm deep at mid-height, cut into its side between
+    ``z = 15`` and ``75`` mm (smooth in phi and z, closed above and below).
+    Seen from cameras around and above the table, most of each dent stays
+    inside the visual hull: silhouettes cannot carve it, only colour
+    consistency can (of the about 17.8 cm^3 of pockets below the ungrooved
+    surface, about 10.0 cm^3 project inside the silhouette in all 36 views
+    of :func:`default_camera`).  Exact volume as for :class:`AAAPhantom`.
+    """
+
+    Z_POCKETS = (15.0, 75.0)
+
+    def __init__(self, *, n_grooves=5, depth=11.0, height=115.0, name="grooved"):
+        if n_grooves < 0 or not 0 <= depth < 20 or not height > self.Z_POCKETS[1]:
+            raise ValueError(f"need n_grooves >= 0, 0 <= depth < 20 mm, height > {self.Z_POCKETS[1]} mm")
+        terms = [[30.0, 0, 0, 0, 0, 0, 0], [2.0, 0, 0, 0, 1, 3, 0.2]]
+        self.groove_angles = [0.5 + 2 * np.pi * k / n_grooves for k in range(int(n_grooves))]
+        for mu in self.groove_angles:
+            terms.append([-float(depth), 1, *self.Z_POCKETS, 2, 40.0, mu])
+        star = _StarSolid(np.array(terms), 0.0, float(height))
+        r = star.r_max
+        super().__init__([star], star.volume, (np.array([-r, -r, 0.0]), np.array([r, r, float(height)])), name)
+        self.star = star
+
+
+def striped_albedo(points):
+    """A greenish-yellow texture with fine dark stripes and speckles: unlike :func:`tissue_albedo`.
+
+    Stripes (period about 7 mm, tilted) and a higher-frequency speckle over
+    a green-to-ochre gradient in z; no default of organlab was tuned on it.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, mm, world (table) frame
+
+    Returns
+    -------
+    (N, 3) float64
+        RGB albedo, 0-255 scale.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    phi = np.arctan2(p[:, 1], p[:, 0])
+    stripe = 0.5 + 0.5 * np.tanh(2.5 * np.sin(2 * np.pi * (p[:, 2] + 9.0 * phi) / 7.0))
+    speck = 0.5 + 0.5 * np.sin(0.9 * p[:, 0] + 0.3) * np.sin(1.1 * p[:, 1] - 0.7) * np.sin(0.8 * p[:, 2] + 1.9)
+    g = np.clip(p[:, 2] / 90.0, 0.0, 1.0)[:, None]
+    base = (1 - g) * np.array([96.0, 170.0, 70.0]) + g * np.array([200.0, 160.0, 60.0])
+    dark = np.array([40.0, 52.0, 30.0])
+    col = dark + (base - dark) * (0.35 + 0.65 * stripe)[:, None]
+    return col * (0.8 + 0.2 * speck)[:, None]
+
+
+class DentedSpecimen(_Union):
+    """A squat, textured, lobed solid with hidden dents (a specimen no default was tuned on).
+
+    ``rho <= r(phi, z)``, ``0 <= z <= 90``: a four-lobed section (radius
+    about 34 mm) with ``n_dents`` round dents, ``depth`` mm deep, each
+    localised in phi and z (between 20 and 70 mm), on the lobes' flanks, so
+    most of each dent lies inside every silhouette of a camera ring.  The
+    texture is :func:`striped_albedo`.  Exact volume as for :class:`AAAPhantom`.
+    """
+
+    def __init__(self, *, n_dents=6, depth=8.0, height=90.0, name="dented"):
+        if n_dents < 0 or not 0 <= depth < 16 or not height > 75.0:
+            raise ValueError("need n_dents >= 0, 0 <= depth < 16 mm, height > 75 mm")
+        terms = [[34.0, 0, 0, 0, 0, 0, 0], [3.0, 0, 0, 0, 1, 4, 0.3], [2.0, 1, -10.0, height + 10.0, 0, 0, 0]]
+        self.dent_angles = [0.9 + 2 * np.pi * k / n_dents for k in range(int(n_dents))]
+        for k, mu in enumerate(self.dent_angles):
+            z0 = 20.0 + 8.0 * (k % 3)
+            terms.append([-float(depth), 1, z0, z0 + 42.0, 2, 30.0, mu])
+        star = _StarSolid(np.array(terms, dtype=np.float64), 0.0, float(height))
+        r = star.r_max
+        super().__init__([star], star.volume, (np.array([-r, -r, 0.0]), np.array([r, r, float(height)])), name)
+        self.star = star
+
+    def albedo(self, points):
+        return striped_albedo(points)
+
+
+def make_specimen(name):
+    """The specimen called ``name``: ``"aaa"`` (:class:`AAAPhantom`), ``"grooved"`` (:class:`GroovedSpecimen`) or ``"dented"`` (:class:`DentedSpecimen`)."""
+    if isinstance(name, Specimen):
+        return name
+    if name == "aaa":
+        return AAAPhantom()
+    if name == "grooved":
+        return GroovedSpecimen()
+    if name == "dented":
+        return DentedSpecimen()
+    raise ValueError(f"unknown specimen {name!r}; choose 'aaa', 'grooved' or 'dented'")

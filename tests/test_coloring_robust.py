@@ -1,0 +1,238 @@
+"""Colouring without a cliff (issue 13): automatic threshold, exposure, robust measures, the silhouette guard.
+
+The fast tests use test_coloring's tiny ray-cast scenes; the slow ones a
+scene no default was tuned on (the dented, striped specimen under the hard
+lamp, known cameras) and the real dinoSparseRing photos (skipped when
+../shared/data is absent).  Figures measured at 1 mm are in
+docs/benchmarks.md; the tests use 2 mm.
+"""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import organlab
+from organlab.coloring import PIPELINE_OPTIONS, color_voxels
+from organlab.coloring._auto import exposure_gains
+from organlab.coloring._statistics import _shading_fit_std, _trimmed_std
+from organlab.datasets import render_silhouette
+from tests.test_coloring import SLOT, _Boxes, _hull, _render, _ring, _smooth
+
+# ../shared/data beside the repository; ORGANLAB_SHARED_DATA overrides it (e.g. from a git worktree)
+DATA = Path(os.environ.get("ORGANLAB_SHARED_DATA", Path(organlab.__file__).resolve().parents[2] / "shared" / "data"))
+DATA = DATA / "dinoSparseRing"
+
+
+@pytest.fixture(scope="module")
+def slot():
+    from organlab.grid import VoxelGrid
+
+    scene = _Boxes(SLOT, _smooth)
+    cams = _ring(n=16)
+    images, masks = _render(scene, cams)
+    grid = VoxelGrid.from_roi((-36, -36, 0.0), (36, 36, 72), 2.0)
+    return cams, images, masks, grid, _hull(masks, cams, grid), scene.inside(grid.centers()).reshape(grid.shape)
+
+
+def _unexplained(occ, hull, cams, masks, grid):
+    """Silhouette pixels the hull's voxels cover but ``occ``'s do not, per view."""
+    return [
+        int((m & render_silhouette(c, occupancy=hull, grid=grid) & ~render_silhouette(c, occupancy=occ, grid=grid)).sum())
+        for c, m in zip(cams, masks)
+    ]
+
+
+def test_guard_keeps_every_silhouette_pixel(slot):
+    """At a threshold far too low, colouring carves through the silhouettes; the guard puts back what they need."""
+    cams, images, masks, grid, hull, truth = slot
+    bare = color_voxels(images, cams, hull, grid, masks=masks, threshold=0.5, support=1)
+    lost = _unexplained(bare.occupancy, hull, cams, masks, grid)
+    assert max(lost) > 0.05 * min(m.sum() for m in masks)  # measured: most of each silhouette
+    guarded = color_voxels(images, cams, hull, grid, masks=masks, threshold=0.5, support=1, guard=True)
+    assert _unexplained(guarded.occupancy, hull, cams, masks, grid) == [0] * len(cams)
+    assert guarded.n_restored > 0 and not np.any(guarded.occupancy & ~hull)
+    with pytest.raises(ValueError, match="guard=True needs"):
+        color_voxels(images, cams, hull, grid, guard=True)
+
+
+def test_automatic_threshold_and_exposure(slot):
+    """Views with exposure gains of +-10 %: the gains are measured, and the automatic threshold opens the slot."""
+    cams, images, masks, grid, hull, truth = slot
+    gains = 1.0 + 0.1 * np.sin(np.arange(len(images)) * 1.7)
+    dim = [np.clip(np.rint(im * g), 0, 255).astype(np.uint8) for im, g in zip(images, gains)]
+    res = color_voxels(dim, cams, hull, grid, masks=masks, threshold="auto", exposure=True, guard=True)
+    assert res.automatic and res.threshold > 0 and res.noise is not None
+    g = np.array(res.gains)
+    # measured: within 4.2 % of the true gains (up to one common factor; the textured box's voxels
+    # show different texture on their faces in different views), correlation 0.95
+    np.testing.assert_allclose(g / g.mean(), gains / gains.mean(), rtol=0.06)
+    assert np.corrcoef(g, gains)[0, 1] > 0.9
+    excess = hull & ~truth
+    removed = 1 - (res.occupancy & excess).sum() / excess.sum()
+    lost = (truth & ~res.occupancy).sum() / truth.sum()
+    assert removed > 0.4 and lost < 0.01, (removed, lost)
+
+
+def test_trimmed_and_shading_measures():
+    """A highlight in one view does not make a voxel inconsistent; shading that follows the table angle neither."""
+    V, M = 12, 3
+    a = np.arange(V) * 2 * np.pi / V
+    vis = np.full((V, M), 10, np.int32)
+    col = np.zeros((V, M, 3))
+    col[:, 0] = [120, 80, 60]  # constant colour ...
+    col[4, 0] += 90  # ... with a highlight in view 4
+    shade = 1.0 + 0.3 * np.cos(a - 0.7)  # Lambertian with the lamp on the camera
+    col[:, 1] = shade[:, None] * [120, 80, 60]
+    col[:, 2] = np.random.default_rng(0).uniform(40, 200, (V, 3))  # a lid over a concavity
+    sums = col * vis[:, :, None]
+    trim = _trimmed_std(vis, sums)
+    assert trim[0] < 1e-9 and trim[2] > 20
+    fit = _shading_fit_std(vis, sums, a)
+    assert fit[0] < 1e-4 and fit[1] < 1e-4 and fit[2] > 20
+    assert _trimmed_std(vis, sums)[1] > 10  # what the between-view spread calls shading
+
+
+# ------------------------------------------------- scenes no default saw (slow)
+@pytest.fixture(scope="module")
+def dented():
+    """The dented, striped specimen under the hard lamp: 24 views of 640 x 480, exposure +-10 %, noise, JPEG 90."""
+    import cv2
+
+    from organlab import synthetic as sy
+    from organlab.carving import carve
+    from organlab.grid import VoxelGrid
+    from organlab.synthetic import _hard
+
+    spec = sy.make_specimen("dented")
+    cams = [sy.default_camera((640, 480)).at_table_angle(a) for a in np.arange(24) * 15.0]
+    images = []
+    for i, c in enumerate(cams):
+        rng = np.random.default_rng([7, i])
+        img = _hard.exposure_gain(rng) * _hard.render_hard(c, supersample=1, specimen=spec)
+        img = np.clip(np.rint(img + rng.normal(0, 1.5, img.shape)), 0, 255).astype(np.uint8)
+        buf = cv2.imencode(".jpg", img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])[1]
+        images.append(cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1].copy())
+    masks = [m >= 0.5 for m in sy.render_masks(spec, cams, supersample=1)]
+    lo, hi = spec.bounds
+    grid = VoxelGrid.from_roi((lo[0] - 8, lo[1] - 8, 0.0), (hi[0] + 8, hi[1] + 8, hi[2] + 12), 2.0)
+    hull = carve(masks, cams, grid)
+    truth = spec.inside(grid.centers()).reshape(grid.shape)
+    return images, cams, masks, grid, hull, truth
+
+
+@pytest.mark.slow
+def test_dented_specimen_under_the_hard_lamp(dented):
+    images, cams, masks, grid, hull, truth = dented
+    excess = hull & ~truth
+    assert (truth & ~hull).sum() == 0
+
+    def run(t):
+        r = color_voxels(images, cams, hull, grid, masks=masks, threshold=t, **PIPELINE_OPTIONS)
+        removed = 1 - (r.occupancy & excess).sum() / excess.sum()
+        return r, removed, (truth & ~r.occupancy).sum() / truth.sum()
+
+    auto, removed, lost = run("auto")
+    print(f"auto {auto.threshold:.2f}: removed {removed:.3f}, lost {lost:.4f}")
+    # issue 13's target, met: >= 50 % of the excess removed for <= 1 % lost (measured 2 mm: 61.8 %, 0.18 %;
+    # 1 mm, 36 views: 56.6 %, 0.20 %)
+    assert removed >= 0.5 and lost <= 0.01
+    _, rem2, lost2 = run(2.0 * auto.threshold)
+    print(f"x2: removed {rem2:.3f}, lost {lost2:.4f}")
+    assert lost2 <= 0.02 and rem2 > 0.3  # measured 43.7 %, 0.15 % (1 mm: 29.0 %, 0.15 %)
+    _, rem_h, lost_h = run(0.5 * auto.threshold)
+    print(f"x0.5: removed {rem_h:.3f}, lost {lost_h:.4f}")
+    # issue 13's target of <= 2 % at half the automatic threshold is NOT met: measured 5.4 % (1 mm: 5.0 %),
+    # the true surface's shading residuals under the hard lamp reach that low; no cliff to nothing
+    # (the fixed 'between' measure lost 61 % at 15 and 95 % at 10), and the guard keeps every silhouette.
+    assert lost_h < 0.08
+
+
+needs_dino = pytest.mark.skipif(not (DATA / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DATA}")
+
+
+@pytest.fixture(scope="module")
+def dino():
+    if not (DATA / "dinoSR_par.txt").is_file():
+        pytest.skip(f"dinoSparseRing not found at {DATA}")
+    from organlab.datasets import load_middlebury, middlebury_silhouettes
+
+    data = load_middlebury(DATA)
+    good = np.nonzero(data.good)[0]
+    imgs = [data.images[i] for i in good]
+    return data, imgs, [data.cameras[i] for i in good], middlebury_silhouettes(imgs)
+
+
+def _mean_iou(occ, grid, cams, masks):
+    return np.mean([((r := render_silhouette(c, occupancy=occ, grid=grid)) & m).sum() / (r | m).sum() for c, m in zip(cams, masks)])
+
+
+@needs_dino
+@pytest.mark.slow
+def test_dino_colouring_keeps_the_model(dino):
+    """Real photos, the authors' masks, 2 mm: both methods at the automatic threshold, and at a quarter of it."""
+    from organlab.carving import hull_field
+    from organlab.grid import VoxelGrid
+
+    data, imgs, cams, masks = dino
+    grid = VoxelGrid.from_roi(data.bbox[0] - 4.0, data.bbox[1] + 4.0, 2.0)
+    hull = hull_field([m.astype(np.float32) for m in masks], cams, grid) >= 0.5
+    h = _mean_iou(hull, grid, cams, masks)
+    for method in ("voxel_coloring", "space_carving"):
+        r = color_voxels(imgs, cams, hull, grid, masks=masks, method=method, threshold="auto", **PIPELINE_OPTIONS)
+        # measured (2 mm): IoU 0.9445 vs the hull's 0.9440, 0.2 % of the hull's volume removed
+        assert _mean_iou(r.occupancy, grid, cams, masks) > h - 0.01
+        assert grid.volume_of(r.occupancy) > 0.97 * grid.volume_of(hull)
+        low = color_voxels(imgs, cams, hull, grid, masks=masks, method=method, threshold=r.threshold / 4, **PIPELINE_OPTIONS)
+        # the guard: no threshold carves through a silhouette (measured 0.9442 at a quarter)
+        assert _unexplained(low.occupancy, hull, cams, masks, grid) == [0] * len(cams)
+        assert _mean_iou(low.occupancy, grid, cams, masks) > h - 0.01
+
+
+@needs_dino
+@pytest.mark.slow
+def test_dino_backdrop_keying_matches_the_authors_masks(dino):
+    """The photos keyed against the border's colour (no masks, no frames) against the authors' recipe."""
+    from organlab import _keying
+
+    data, imgs, cams, masks = dino
+    colour = _keying.estimate_backdrop(imgs)
+    ious = [(k & m).sum() / (k | m).sum() for k, m in ((_keying.key(im, colour)[0], m) for im, m in zip(imgs, masks))]
+    # measured: mean 0.969, min 0.955 (the authors' masks are grown by 3 px; most of the rest is
+    # their unfilled dark holes and the stand's top)
+    assert np.mean(ious) > 0.96 and min(ious) > 0.945
+
+
+@needs_dino
+@pytest.mark.slow
+def test_dino_as_a_backdrop_session(dino, tmp_path):
+    """The photos as a session with a border backdrop (no masks, no frames), through organlab.pipeline at 2 mm."""
+    import shutil
+
+    from organlab.pipeline import reconstruct
+    from organlab.session import write_json
+
+    data, imgs, cams, masks = dino
+    good = [n for n, g in zip(data.names, data.good) if g]
+    (tmp_path / "views").mkdir()
+    for n in good:
+        shutil.copy(DATA / n, tmp_path / "views" / n)
+    K = cams[0].K
+    write_json(tmp_path / "session.json", {
+        "format": "organlab.session/1", "units": "mm", "image_size": [640, 480],
+        "camera": {"K": K.tolist(), "dist": [0, 0, 0, 0, 0]},
+        "views": [{"image": f"views/{n}", "angle_deg": 0.0, "pose": {"R": c.R.tolist(), "t": c.t.tolist()}}
+                  for n, c in zip(good, cams)],
+        "roi": {"min": (data.bbox[0] - 4.0).tolist(), "max": (data.bbox[1] + 4.0).tolist()},
+        "backdrop": {"color": "border"},
+    })
+    rec = reconstruct(tmp_path, voxel_size=2.0)
+    assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
+    # the marching-cubes surface: this measures the silhouettes (the finished, remeshed surface rounds the
+    # dinosaur's thin parts at 2 mm: mean IoU 0.925 against 0.943 for the raw one)
+    ious = [((r := render_silhouette(c, mesh=rec.raw_mesh)) & m).sum() / (r | m).sum() for c, m in zip(cams, masks)]
+    print(f"backdrop session, 2 mm: mean IoU {np.mean(ious):.4f}, min {np.min(ious):.4f}")
+    # measured 2 mm: mean 0.943; 1 mm: 0.950 (issue 13's 0.975 NOT met: the authors' silhouettes are grown
+    # by 3 px, docs/benchmarks.md); Li's threshold against a black frame reached 0.948 at 1 mm
+    assert np.mean(ious) > 0.935 and rec.mesh.is_watertight
