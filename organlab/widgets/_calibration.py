@@ -81,6 +81,7 @@ class CalibrationChecker:
         self.selected = next(iter(self.corners)) if self.corners else names[0]
         self.magnify = None
         self.controls = {}
+        self.last_figure = None
 
     @classmethod
     def from_session(cls, session, **fit):
@@ -245,6 +246,7 @@ class CalibrationChecker:
         The controls are kept in ``self.controls`` (``image``, ``magnify``,
         ``drop``, ``table``, ``output``); ``controls["drop"].click()`` drops
         (or restores) the selected image as a person's click would.
+        The figure last drawn into the Output is ``self.last_figure``.
         """
         w = ipywidgets()
         c = self.controls = {
@@ -261,7 +263,7 @@ class CalibrationChecker:
         def refresh():
             c["drop"].description = "restore this image" if self.selected in self.dropped else "drop this image"
             c["table"].value = self.uncertainty_html()
-            redraw(c["output"], self.figure)
+            self.last_figure = redraw(c["output"], self.figure)
 
         def on_image(change):
             self.selected = change["new"]

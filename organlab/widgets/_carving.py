@@ -60,6 +60,7 @@ class CarvingTuner:
         self.reference_volume = reference_volume
         self.result = None
         self.controls = {}
+        self.last_figure = None
 
     @classmethod
     def from_session(cls, session, cameras, silhouettes=None, *, views=None, **options):
@@ -171,6 +172,7 @@ class CarvingTuner:
         The controls are kept in ``self.controls`` (``voxel_size``,
         ``tolerance``, ``color``, ``color_threshold``, ``summary``,
         ``output``); setting a ``value`` re-runs the carving.
+        The figure last drawn into the Output is ``self.last_figure``.
         """
         w = ipywidgets()
         c = self.controls = {
@@ -195,7 +197,7 @@ class CarvingTuner:
             except OrganlabError as e:
                 c["summary"].value = f"error: {e}"
                 return
-            redraw(c["output"], self.figure)
+            self.last_figure = redraw(c["output"], self.figure)
 
         for k in ("voxel_size", "tolerance", "color", "color_threshold"):
             c[k].observe(refresh, names="value")

@@ -22,12 +22,18 @@ def new_figure(width_in, height_in):
 
 
 def redraw(output, make_figure):
-    """Replace the content of an ipywidgets Output with ``make_figure()``; errors become a line of text."""
+    """Replace the content of an ipywidgets Output with ``make_figure()``; errors become a line of text.
+
+    Returns the figure drawn (None after an error).
+    """
     from IPython.display import display
 
+    fig = None
     with output:
         output.clear_output(wait=True)
         try:
-            display(make_figure())
+            fig = make_figure()
+            display(fig)
         except (OrganlabError, ValueError) as e:
             print(f"error: {e}")
+    return fig

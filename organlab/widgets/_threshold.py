@@ -57,6 +57,7 @@ class ThresholdPicker:
         self.view = view
         self.threshold = threshold
         self.controls = {}
+        self.last_figure = None
 
     # ------------------------------------------------------------ state
     @property
@@ -173,6 +174,7 @@ class ThresholdPicker:
         The controls are kept in ``self.controls`` (``view``, ``threshold``,
         ``auto``, ``summary``, ``output``); setting their ``value`` from
         Python updates the picker as a person moving them would.
+        The figure last drawn into the Output is ``self.last_figure``.
         """
         w = ipywidgets()
         n = len(self.session.views)
@@ -190,7 +192,7 @@ class ThresholdPicker:
 
         def refresh():
             c["summary"].value = self.summary()
-            redraw(c["output"], self.figure)
+            self.last_figure = redraw(c["output"], self.figure)
 
         def on_view(change):
             self.view = change["new"]
