@@ -104,6 +104,14 @@ def test_notebook_executes(source, version, tmp_path):
         "image/png" in o.get("data", {}) for c in done.cells for o in c.get("outputs", [])
     )
     assert pictures >= 2, f"{source.name}: expected pictures, got {pictures}"
+    # a widget's default values draw its picture: stored in its Output widget's state
+    state = done.metadata.get("widgets", {}).get("application/vnd.jupyter.widget-state+json", {}).get("state", {})
+    widget_pictures = [
+        m for m in state.values()
+        if m["model_name"] == "OutputModel" and any("image/png" in o.get("data", {}) for o in m["state"].get("outputs", []))
+    ]
+    if any("widget()" in c.source for c in done.cells if c.cell_type == "code"):
+        assert widget_pictures, f"{source.name}: a widget drew no picture"
     if version == "solutions":
         assert not errors
         assert text.count(": correct") == n_exercises, text
