@@ -2,7 +2,8 @@
 
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
                          [--method hull|coloring|space_carving] [--color-threshold X]
-    organlab calibrate SESSION [--figures DIR]
+                         [--calibration PATH] [--recalibrate]
+    organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
     organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
@@ -49,13 +50,22 @@ def _parser():
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
                    help="photo-consistency threshold (grey levels) for --method coloring/space_carving")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
+    r.add_argument("--calibration", type=Path, default=None, metavar="PATH",
+                   help="use this calibration.json (checked against the session) instead of the session's own")
+    r.add_argument("--recalibrate", action="store_true",
+                   help="calibrate from the board images even when the session's calibration.json matches it")
     r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
     c.add_argument("session", type=Path)
+    where = c.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", type=Path, metavar="DIR",
+                       help="write DIR/calibration.json and the check figures in DIR/calibration_check")
+    where.add_argument("--in-place", action="store_true",
+                       help="write them into the session folder (later reconstructions reuse its calibration.json)")
     c.add_argument("--figures", type=Path, default=None, metavar="DIR",
-                   help="where to write the check figures (default SESSION/calibration_check)")
+                   help="where to write the check figures (default: calibration_check beside calibration.json)")
     c.add_argument("--quiet", action="store_true")
 
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
@@ -81,6 +91,8 @@ def _reconstruct(a):
         hull=a.hull,
         color_threshold=a.color_threshold,
         tolerance=a.tolerance,
+        calibration=a.calibration,
+        recalibrate=a.recalibrate,
         progress=_bars(a.quiet),
     )
     paths = write_outputs(rec, a.out)
@@ -98,22 +110,26 @@ def _reconstruct(a):
 
 
 def _calibrate(a):
-    from . import calibration as calib
+    from .calibration import calibrate
+    from .figures import check_figures
     from .session import load_session
 
     session = load_session(a.session)
+    out = session.root if a.in_place else a.out
+    if out.exists() and not out.is_dir():
+        raise OrganlabError(f"{out}: exists and is not a folder; give --out a folder")
     bar = _bars(a.quiet)("calibration")
-    result = calib.calibrate_session(session, progress=bar)
+    cal = calibrate(session, progress=bar)
     bar.close()
-    path = calib.write_calibration(session, result)
-    figs = calib.check_figures(session, result, a.figures or session.root / "calibration_check")
-    cam = result["camera"]
+    out.mkdir(parents=True, exist_ok=True)
+    path = cal.save(out / "calibration.json")
+    figs = check_figures(session, cal, a.figures or out / "calibration_check")
     print(f"organlab calibrate: {session.name} -> {path}")
-    rms = "given in session.json" if cam.get("rms_px") is None else f"RMS {cam['rms_px']:.3f} px"
-    print(f"  intrinsics {rms}, fx {cam['K'][0][0]:.2f}, fy {cam['K'][1][1]:.2f}, "
-          f"cc ({cam['K'][0][2]:.2f}, {cam['K'][1][2]:.2f}), kc {[round(k, 5) for k in cam['dist']]}")
-    if result.get("turntable"):
-        print(f"  turntable RMS {result['turntable']['rms_px']:.3f} px")
+    for line in cal.summary():
+        print(f"  {line}")
+    for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
+        for name, why in (fit.rejected.items() if fit is not None else ()):
+            print(f"  {what} image {name} not used: {why}")
     print(f"  {len(figs)} check figures in {Path(figs[0]).parent if figs else '-'}")
     return 0
 
