@@ -20,7 +20,7 @@ from organlab.carving import hull_field
 from organlab.errors import CalibrationError
 from organlab.grid import VoxelGrid
 from organlab.session import load_session
-from organlab.silhouette import Silhouette, session_silhouettes, silhouette
+from organlab.silhouette import Silhouette, silhouette, silhouettes
 from organlab.surface import mesh_from_volume
 from organlab.widgets import CalibrationChecker, CarvingTuner, ThresholdPicker
 
@@ -36,7 +36,7 @@ def session():
 
 @pytest.fixture(scope="module")
 def sils(session):
-    return session_silhouettes(session)
+    return silhouettes(session)
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +47,7 @@ def truth():
 # ------------------------------------------------------------ threshold picker
 def test_threshold_picker_matches_the_silhouette_stage(session, sils):
     picker = ThresholdPicker(session, view=4)
-    # automatic: exactly what session_silhouettes finds for that view
+    # automatic: exactly what silhouettes() finds for that view
     assert picker.threshold is None
     assert picker.effective_threshold == pytest.approx(sils[4].threshold)
     assert np.array_equal(picker.silhouette.mask, sils[4].mask)

@@ -52,14 +52,13 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from organlab.calibration import board_points, calibrate_session
-from organlab.pipeline import session_cameras
-from organlab.session import load_session
+import organlab as ol
+from organlab.calibration import board_points
 from organlab.widgets import CalibrationChecker
 
 ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "sample_sessions").is_dir())
 SAMPLE = ROOT / "sample_sessions" / "aaa_phantom"
-session = load_session(SAMPLE)
+session = ol.load_session(SAMPLE)
 print(session.name, "-", len(session.intrinsic_images), "intrinsic board images,",
       len(session.turntable_images), "turntable board images, pattern", session.pattern)
 
@@ -126,31 +125,32 @@ checker.restore(worst)
 # %% [markdown]
 # ## The turntable
 #
-# `calibrate_session` runs both fits: the intrinsics as above, then the camera pose at table
-# angle 0 from the board lying on the table, one least-squares problem over every corner of
-# every turntable image.  Below, one turntable image with its detected corners (+), the table
-# axis projected through the fitted camera (yellow) and the circle of radius 100 mm on the
-# table (cyan): the board's corners turn on circles like it.
+# `ol.calibrate` runs both fits: the intrinsics as above, then the camera pose at table angle 0
+# from the board lying on the table, one least-squares problem over every corner of every
+# turntable image.  It returns a `Calibration`, which gives the camera of every view and can be
+# saved next to the session (`cal.save(path)`, `ol.Calibration.load(path)`).  Below, one turntable
+# image with its detected corners (+), the table axis projected through the fitted camera (yellow)
+# and a circle of radius 100 mm on the table (cyan): the board's corners turn on circles like it.
 
 # %%
-calibration = calibrate_session(session)
-tt = calibration["turntable"]
-print(f"turntable fit: RMS {tt['rms_px']:.3f} px over {tt['n_images']} images, flagged: {tt['flagged'] or 'none'}")
-cameras = session_cameras(session, calibration)
+cal = ol.calibrate(session)
+tt = cal.turntable
+print("\n".join(cal.summary()))
+cameras = cal.cameras(session)
 
 path, angle = session.turntable_images[2]
-entry = tt["images"][session.relpath(path)]
-cam_tt = cameras[0].with_pose(tt["R_cam"], tt["t_cam"]).at_table_angle(angle)
+name = session.relpath(path)
+cam_tt = tt.camera.at_table_angle(angle)
 axis = cam_tt.project(np.array([[0.0, 0.0, z] for z in np.linspace(0, 150, 16)]))
 s_ = np.linspace(0, 2 * np.pi, 181)
 circle = cam_tt.project(np.stack([100 * np.cos(s_), 100 * np.sin(s_), 0 * s_], axis=1))
-corners = np.array(entry["corners_px"])
+corners = tt.corners[name]
 plt.figure(figsize=(8, 6))
 plt.imshow(session.read(path, grey=True), cmap="gray")
 plt.plot(corners[:, 0], corners[:, 1], "+", color="lime", ms=7, label="detected corners")
 plt.plot(axis[:, 0], axis[:, 1], "-", color="gold", lw=2, label="table axis (fitted)")
 plt.plot(circle[:, 0], circle[:, 1], "-", color="cyan", lw=1, label="circle r = 100 mm on the table")
-plt.title(f"{session.relpath(path)}, table at {angle:g} deg, RMS {entry['rms_px']:.3f} px")
+plt.title(f"{name}, table at {angle:g} deg, RMS {tt.per_image_rms[name]:.3f} px")
 plt.legend(loc="lower right", fontsize=8)
 plt.axis("off")
 plt.show()
@@ -199,14 +199,14 @@ else:
     print(f"Exercise 1: correct, {rms_05:.4f} px")
 
 # %% [markdown]
-# **Exercise 2.**  Where is the camera?  From the turntable calibration (`tt["R_cam"]`,
-# `tt["t_cam"]`, world to camera) compute the camera centre $C = -R^T t$ in the world frame (mm)
+# **Exercise 2.**  Where is the camera?  From the turntable calibration (`tt.camera.R` and
+# `tt.camera.t`, world to camera) compute the camera centre $C = -R^T t$ in the world frame (mm)
 # and store it in `centre`; then its distance to the table axis (the world Z axis) in
 # `axis_distance` (mm).
 
 # %%
 # BEGIN SOLUTION
-R_cam, t_cam = np.array(tt["R_cam"]), np.array(tt["t_cam"])
+R_cam, t_cam = tt.camera.R, tt.camera.t
 centre = -R_cam.T @ t_cam
 axis_distance = float(np.hypot(centre[0], centre[1]))
 # END SOLUTION

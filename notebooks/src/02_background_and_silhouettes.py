@@ -39,15 +39,14 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from organlab.camera import Camera
-from organlab.session import load_session
-from organlab.silhouette import background_model, difference, session_silhouettes, silhouette
+import organlab as ol
+from organlab.silhouette import background_model, difference, silhouette
 from organlab.synthetic import AAAPhantom, render_masks
 from organlab.widgets import ThresholdPicker
 
 ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "sample_sessions").is_dir())
 SAMPLE = ROOT / "sample_sessions" / "aaa_phantom"
-session = load_session(SAMPLE)
+session = ol.load_session(SAMPLE)
 frames = [session.read(p) for p in session.background_images]
 background = background_model(frames)
 image = session.read(session.views[0].image)
@@ -107,10 +106,10 @@ plt.show()
 # %% [markdown]
 # ## Every view
 #
-# `session_silhouettes` runs the same steps for all 36 views (the automatic threshold per view).
+# `ol.silhouettes` runs the same steps for all 36 views (the automatic threshold per view).
 
 # %%
-sils = session_silhouettes(session)
+sils = ol.silhouettes(session)
 fig, axes = plt.subplots(1, 6, figsize=(15, 2.6))
 for ax, i in zip(axes, range(0, 36, 6)):
     ax.imshow(sils[i].coverage, cmap="gray")
@@ -135,7 +134,7 @@ truth = json.loads((SAMPLE / "truth.json").read_text())
 def true_camera(i):
     """The camera view ``i`` was rendered with (from truth.json)."""
     c, v = truth["camera"], truth["views"][i]
-    return Camera(c["K"], c["dist"], v["R"], v["t"], tuple(c["image_size"]))
+    return ol.Camera(c["K"], c["dist"], v["R"], v["t"], tuple(c["image_size"]))
 
 
 exact_9 = render_masks(AAAPhantom(), [true_camera(9)], supersample=2)[0] >= 0.5

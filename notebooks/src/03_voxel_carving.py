@@ -46,20 +46,14 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from organlab.calibration import calibrate_session
-from organlab.carving import carve, hull_field
-from organlab.grid import VoxelGrid
-from organlab.pipeline import session_cameras
-from organlab.session import load_session
-from organlab.silhouette import session_silhouettes
-from organlab.surface import mesh_from_volume
+import organlab as ol
 from organlab.widgets import CarvingTuner
 
 ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "sample_sessions").is_dir())
-session = load_session(ROOT / "sample_sessions" / "aaa_phantom")
-calibration = calibrate_session(session)
-cameras = session_cameras(session, calibration)
-sils = session_silhouettes(session)
+session = ol.load_session(ROOT / "sample_sessions" / "aaa_phantom")
+cal = ol.calibrate(session)
+cameras = cal.cameras(session)
+sils = ol.silhouettes(session)
 true_volume = session.reference["volume_mm3"]
 print(f"{len(cameras)} views; the phantom's exact volume is {true_volume / 1000:.2f} cm3")
 
@@ -68,14 +62,15 @@ print(f"{len(cameras)} views; the phantom's exact volume is {true_volume / 1000:
 # figures in the README are at 1 mm).
 
 # %%
-grid = VoxelGrid.from_roi(session.roi_min, session.roi_max, 2.0)
-occ_box = carve([s.mask for s in sils], cameras, grid)
-field = hull_field([s.coverage for s in sils], cameras, grid)
-mesh = mesh_from_volume(field, grid)
+grid = ol.VoxelGrid.from_session(session, voxel_size=2.0)
+occ_box = ol.carve(sils, cameras, grid)
+field = ol.hull_field(sils, cameras, grid)
+mesh = ol.mesh_from_field(field, grid)
+measures = ol.measure(mesh)
 print(f"grid {grid.shape}, {grid.n_voxels} voxels of {grid.voxel_size:g} mm")
 print(f"thesis's box test : {grid.volume_of(occ_box) / 1000:7.2f} cm3 ({100 * (grid.volume_of(occ_box) / true_volume - 1):+.1f} %)")
-print(f"sub-voxel hull    : {mesh.volume / 1000:7.2f} cm3 ({100 * (mesh.volume / true_volume - 1):+.2f} %), "
-      f"mesh watertight: {mesh.is_watertight}")
+print(f"sub-voxel hull    : {measures['volume_mm3'] / 1000:7.2f} cm3 ({100 * (measures['volume_mm3'] / true_volume - 1):+.2f} %), "
+      f"area {measures['area_mm2'] / 100:.1f} cm2, watertight: {measures['watertight']}")
 
 # %% [markdown]
 # Horizontal slices through both, with the phantom's true section (dashed, from
@@ -114,8 +109,8 @@ counts = [2, 3, 4, 6, 9, 12, 18, 36]
 volumes = []
 for n in counts:
     step = 36 // n
-    f_n = hull_field([s.coverage for s in sils[::step]], cameras[::step], grid)
-    volumes.append(mesh_from_volume(f_n, grid).volume)
+    f_n = ol.hull_field(sils[::step], cameras[::step], grid)
+    volumes.append(ol.mesh_from_field(f_n, grid).volume)
 plt.figure(figsize=(6, 3.4))
 plt.plot(counts, 100 * (np.array(volumes) / true_volume - 1), "o-")
 plt.yscale("symlog", linthresh=1.0)
@@ -150,8 +145,8 @@ tuner.widget()
 
 # %%
 # BEGIN SOLUTION
-field_12 = hull_field([s.coverage for s in sils[::3]], cameras[::3], grid)
-volume_12 = mesh_from_volume(field_12, grid).volume
+field_12 = ol.hull_field(sils[::3], cameras[::3], grid)
+volume_12 = ol.mesh_from_field(field_12, grid).volume
 # END SOLUTION
 # STUB: volume_12 = None  # your code here
 
@@ -172,7 +167,7 @@ else:
 
 # %%
 # BEGIN SOLUTION
-occ_tol1 = carve([s.mask for s in sils], cameras, grid, tolerance=1)
+occ_tol1 = ol.carve(sils, cameras, grid, tolerance=1)
 n_restored = int(np.count_nonzero(occ_tol1 & ~occ_box))
 # END SOLUTION
 # STUB: occ_tol1, n_restored = None, None  # your code here

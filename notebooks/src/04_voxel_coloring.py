@@ -48,23 +48,18 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from organlab.carving import carve
-from organlab.coloring import color_voxels
+import organlab as ol
 from organlab.figures import mesh_snapshot
-from organlab.grid import VoxelGrid
-from organlab.pipeline import reconstruct, session_cameras
-from organlab.session import load_session
-from organlab.silhouette import session_silhouettes
 from organlab.synthetic import GroovedSpecimen, make_session
 from organlab.widgets import CarvingTuner
 
 workdir = Path(tempfile.mkdtemp(prefix="organlab_nb04_"))
 make_session(workdir / "grooved", specimen="grooved", views_only=True, n_views=18, n_background=5,
              image_size=(320, 240), supersample=1, roi={"min": [-45, -45, 0], "max": [45, 45, 130]})
-session = load_session(workdir / "grooved")
-cameras = session_cameras(session)
+session = ol.load_session(workdir / "grooved")
+cameras = ol.calibrate(session).cameras(session)  # intrinsics and poses given: nothing to fit
 images = [session.read(v.image) for v in session.views]
-sils = session_silhouettes(session, images=images)
+sils = ol.silhouettes(session, images=images)
 specimen = GroovedSpecimen()
 
 fig, axes = plt.subplots(1, 4, figsize=(14, 3))
@@ -79,9 +74,9 @@ plt.show()
 # the specimen was rendered, `specimen.inside` tells which voxel centres are truly inside.
 
 # %%
-grid = VoxelGrid.from_roi(session.roi_min, session.roi_max, 2.0)
-hull = carve([s.mask for s in sils], cameras, grid)
-result = color_voxels(images, cameras, hull, grid, masks=[s.mask for s in sils])
+grid = ol.VoxelGrid.from_session(session, voxel_size=2.0)
+hull = ol.carve(sils, cameras, grid)
+result = ol.color_voxels(images, cameras, hull, grid, masks=[s.mask for s in sils])
 colored = result.occupancy
 truth = specimen.inside(grid.centers()).reshape(grid.shape)
 excess_hull = hull & ~truth
@@ -114,7 +109,7 @@ plt.show()
 # colours (its surface is the coloured voxel model's).
 
 # %%
-rec = reconstruct(session, voxel_size=2.0, method="coloring")
+rec = ol.reconstruct(session, voxel_size=2.0, method="coloring")
 print(f"mesh {rec.mesh.volume / 1000:.1f} cm3 ({rec.report['mesh_volume_error_pct']:+.2f} % vs the specimen), "
       f"watertight: {rec.mesh.is_watertight}")
 picture = mesh_snapshot(rec.mesh, workdir / "colored.png", window_size=(700, 560), elevation_deg=35.0)
@@ -170,7 +165,7 @@ else:
 
 # %%
 # BEGIN SOLUTION
-occ_6 = color_voxels(images, cameras, hull, grid, masks=[s.mask for s in sils], threshold=6.0).occupancy
+occ_6 = ol.color_voxels(images, cameras, hull, grid, masks=[s.mask for s in sils], threshold=6.0).occupancy
 lost_6 = np.count_nonzero(truth & ~occ_6) / np.count_nonzero(truth)
 # END SOLUTION
 # STUB: occ_6, lost_6 = None, None  # your code here

@@ -67,14 +67,14 @@ class CarvingTuner:
         """The tuner of a session with its cameras (e.g. from the calibration).
 
         ``views``: indices of the views to use (default all); silhouettes are
-        found with :func:`organlab.silhouette.session_silhouettes` when not given.
+        found with :func:`organlab.silhouette.silhouettes` when not given.
         """
-        from ..silhouette import session_silhouettes
+        from ..silhouette import silhouettes as find_silhouettes
 
         idx = list(range(len(session.views))) if views is None else [int(i) for i in views]
         images = [session.read(session.views[i].image, key=f"views[{i}].image") for i in idx]
         if silhouettes is None:
-            silhouettes = session_silhouettes(session)
+            silhouettes = find_silhouettes(session)
         options.setdefault("reference_volume", session.reference.get("volume_mm3"))
         return cls(images, [silhouettes[i] for i in idx], [cameras[i] for i in idx],
                    session.roi_min, session.roi_max, **options)

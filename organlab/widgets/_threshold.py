@@ -8,7 +8,7 @@ from ..errors import SessionError
 from ._common import ipywidgets, new_figure, redraw
 
 #: Factor on the background frames' noise giving the lowest automatic
-#: threshold; the value :func:`organlab.silhouette.session_silhouettes` uses.
+#: threshold; the value :func:`organlab.silhouette.silhouettes` uses.
 NOISE_FLOOR_FACTOR = 5.0
 
 
@@ -18,7 +18,7 @@ class ThresholdPicker:
     The silhouette is :func:`organlab.silhouette.silhouette` of the view's
     image against the background model of the session's empty frames, with
     the picker's ``threshold`` (or, when it is None, the automatic threshold
-    that :func:`organlab.silhouette.session_silhouettes` would use).
+    that :func:`organlab.silhouette.silhouettes` would use).
 
     Parameters
     ----------
