@@ -70,6 +70,7 @@ def _execute(nb, cwd):
 def test_sources_found():
     names = [p.stem for p in SOURCES]
     assert names[:4] == ["01_calibration", "02_background_and_silhouettes", "03_voxel_carving", "04_voxel_coloring"]
+    assert "06_live_capture" in names
 
 
 def test_written_notebooks_match_their_sources():
