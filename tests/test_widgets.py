@@ -97,6 +97,10 @@ def test_checker_fit_is_the_calibration_stage(session, checker, truth):
     ref = calibrate_intrinsics(images, session.pattern, image_size=session.image_size, names=names)
     assert np.allclose(checker.baseline.camera.K, ref.camera.K, rtol=0, atol=1e-6)
     assert np.allclose(checker.baseline.camera.dist, ref.camera.dist, rtol=0, atol=1e-9)
+    # given the corners a calibration detected, the same fit without detecting again
+    reused = CalibrationChecker(images, session.pattern, names=names, image_size=session.image_size, corners=ref.corners)
+    assert reused.corners.keys() == checker.corners.keys()
+    assert np.allclose(reused.baseline.camera.K, ref.camera.K, rtol=0, atol=1e-6)
     # the residuals drawn are the fit's: their RMS is the per-image RMS
     name = names[5]
     det, rep = checker.residuals(name)

@@ -77,14 +77,15 @@ plt.show()
 # %% [markdown]
 # ## Intrinsics, image by image
 #
-# The calibration checker detects the board in every image, fits the intrinsics
-# (`organlab.calibration.fit_intrinsics`) and shows, for the selected image, the detected corners
+# `ol.calibrate` detects the board in every image and fits the intrinsics; the calibration
+# checker refits them from the same corners (`organlab.calibration.fit_intrinsics`) and shows, for the selected image, the detected corners
 # (+), the reprojected ones (o) and the residual vectors magnified until they are visible.  The
 # bars are each image's RMS error.  In the widget you can pick an image, drop it, and see the fit
 # and its uncertainties change.
 
 # %%
-checker = CalibrationChecker.from_session(session)
+cal = ol.calibrate(session)  # both fits: the intrinsics, then the turntable (below)
+checker = CalibrationChecker.from_session(session, calibration=cal)  # reuses the corners cal detected
 print(checker.calibration.summary())
 worst = max(checker.calibration.per_image_rms, key=checker.calibration.per_image_rms.get)
 checker.selected = worst
@@ -125,7 +126,7 @@ checker.restore(worst)
 # %% [markdown]
 # ## The turntable
 #
-# `ol.calibrate` runs both fits: the intrinsics as above, then the camera pose at table angle 0
+# `ol.calibrate` ran both fits: the intrinsics as above, then the camera pose at table angle 0
 # from the board lying on the table, one least-squares problem over every corner of every
 # turntable image.  It returns a `Calibration`, which gives the camera of every view and can be
 # saved next to the session (`cal.save(path)`, `ol.Calibration.load(path)`).  Below, one turntable
@@ -133,7 +134,6 @@ checker.restore(worst)
 # and a circle of radius 100 mm on the table (cyan): the board's corners turn on circles like it.
 
 # %%
-cal = ol.calibrate(session)
 tt = cal.turntable
 print("\n".join(cal.summary()))
 cameras = cal.cameras(session)

@@ -53,7 +53,8 @@ from organlab.figures import mesh_snapshot
 from organlab.synthetic import GroovedSpecimen, make_session
 from organlab.widgets import CarvingTuner
 
-workdir = Path(tempfile.mkdtemp(prefix="organlab_nb04_"))
+scratch = tempfile.TemporaryDirectory(prefix="organlab_nb04_")  # removed when the kernel stops
+workdir = Path(scratch.name)
 make_session(workdir / "grooved", specimen="grooved", views_only=True, n_views=18, n_background=5,
              image_size=(320, 240), supersample=1, roi={"min": [-45, -45, 0], "max": [45, 45, 130]})
 session = ol.load_session(workdir / "grooved")

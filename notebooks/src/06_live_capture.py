@@ -49,7 +49,8 @@ import organlab as ol
 from organlab.capture import SimRig, capture_session
 from organlab.silhouette import background_model, background_noise, silhouette
 
-root = Path(tempfile.mkdtemp(prefix="organlab_nb06_")) / "captured"
+scratch = tempfile.TemporaryDirectory(prefix="organlab_nb06_")  # removed when the kernel stops
+root = Path(scratch.name) / "captured"
 
 # %% [markdown]
 # ## Carving while the table turns

@@ -38,6 +38,9 @@ class CalibrationChecker:
         One unique name per image.
     image_size : (2,) int
         ``(width, height)``, px.
+    corners : dict of str to (N, 2) float64, optional
+        Corners already detected (e.g. ``Calibration.intrinsics.corners``), px,
+        board order; the boards are detected when omitted.
     **fit
         Options of :func:`organlab.calibration.fit_intrinsics` (``fix_k3``,
         ``estimate_skew``, ``reject_factor``, ...).
@@ -58,7 +61,7 @@ class CalibrationChecker:
         (the largest residual drawn a third of a board square long).
     """
 
-    def __init__(self, images, pattern, *, names, image_size, **fit):
+    def __init__(self, images, pattern, *, names, image_size, corners=None, **fit):
         from ..calibration import detect_board, fit_intrinsics
 
         images = list(images)
@@ -69,11 +72,17 @@ class CalibrationChecker:
         self.image_size = tuple(int(s) for s in image_size)
         self._fit_options = dict(fit)
         self.images = dict(zip(names, images))
-        self.corners = {}
-        for n, img in self.images.items():
-            c = detect_board(img, pattern)
-            if c is not None:
-                self.corners[n] = c
+        if corners is not None:
+            unknown = sorted(set(map(str, corners)) - set(names))
+            if unknown:
+                raise CalibrationError(f"corners given for images not among the names: {unknown}")
+            self.corners = {n: np.asarray(corners[n], np.float64).reshape(-1, 2) for n in names if n in corners}
+        else:
+            self.corners = {}
+            for n, img in self.images.items():
+                c = detect_board(img, pattern)
+                if c is not None:
+                    self.corners[n] = c
         self.undetected = tuple(n for n in names if n not in self.corners)
         self.baseline = fit_intrinsics(self.corners, pattern, image_size=self.image_size, **fit)
         self.calibration = self.baseline
@@ -84,8 +93,12 @@ class CalibrationChecker:
         self.last_figure = None
 
     @classmethod
-    def from_session(cls, session, **fit):
-        """The checker of a session's ``calibration.intrinsic_images``."""
+    def from_session(cls, session, *, calibration=None, **fit):
+        """The checker of a session's ``calibration.intrinsic_images``.
+
+        ``calibration``: an :class:`organlab.calibration.Calibration` of the
+        session whose intrinsic fit's detected corners are reused (no new detection).
+        """
         if not session.intrinsic_images:
             raise CalibrationError(f"{session.json_path}: calibration.intrinsic_images: none to check")
         images = [
@@ -93,7 +106,10 @@ class CalibrationChecker:
             for i, p in enumerate(session.intrinsic_images)
         ]
         names = [session.relpath(p) for p in session.intrinsic_images]
-        return cls(images, session.pattern, names=names, image_size=session.image_size, **fit)
+        corners = None
+        if calibration is not None and calibration.intrinsics is not None:
+            corners = calibration.intrinsics.corners
+        return cls(images, session.pattern, names=names, image_size=session.image_size, corners=corners, **fit)
 
     # ------------------------------------------------------------ state
     @property
