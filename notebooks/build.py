@@ -16,6 +16,11 @@ Usage::
 
     python notebooks/build.py            # write both versions of every source
     python notebooks/build.py --check    # exit 1 if a written notebook is out of date
+    python notebooks/build.py --pictures docs/img   # run the solutions, save each one's key picture
+
+The key picture of a notebook is the first PNG output of its cell tagged
+``key-picture``; ``--pictures`` runs the solution versions (nbclient, the
+current interpreter's kernel) and writes ``DIR/notebook_NN_name.png``.
 """
 
 from __future__ import annotations
@@ -120,10 +125,39 @@ def render(nb):
     return nbformat.writes(nb) + "\n"
 
 
+def key_pictures(out_dir, *, timeout=600):
+    """Execute every solution notebook and write the PNG of its ``key-picture`` cell; returns the paths."""
+    import base64
+
+    import nbclient
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for path in sources():
+        nb = build_one(path)["solutions"]
+        nb.cells = [c for c in nb.cells if "needs-person" not in c.metadata.get("tags", [])]
+        nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
+                                resources={"metadata": {"path": str(target("solutions", path).parent)}}).execute()
+        pngs = [o["data"]["image/png"] for c in nb.cells if "key-picture" in c.metadata.get("tags", [])
+                for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
+        if not pngs:
+            raise BuildError(f"{path.name}: no cell tagged key-picture drew a picture")
+        dest = out_dir / f"notebook_{path.stem}.png"
+        dest.write_bytes(base64.b64decode(pngs[0]))
+        written.append(dest)
+        print(f"wrote {dest}")
+    return written
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--check", action="store_true", help="exit 1 if a written notebook differs from its source")
+    ap.add_argument("--pictures", metavar="DIR", help="execute the solution notebooks and save their key pictures in DIR")
     args = ap.parse_args(argv)
+    if args.pictures:
+        key_pictures(args.pictures)
+        return 0
     stale = []
     for path in sources():
         for version, nb in build_one(path).items():

@@ -113,6 +113,9 @@ def test_notebook_executes(source, version, tmp_path):
     ]
     if any("widget()" in c.source for c in done.cells if c.cell_type == "code"):
         assert widget_pictures, f"{source.name}: a widget drew no picture"
+    key = [o for c in done.cells if "key-picture" in c.metadata.get("tags", []) for o in c.get("outputs", [])
+           if "image/png" in o.get("data", {})]
+    assert key, f"{source.name}: the cell tagged key-picture (docs/img) drew nothing"
     if version == "solutions":
         assert not errors
         assert text.count(": correct") == n_exercises, text

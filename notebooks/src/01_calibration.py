@@ -83,7 +83,7 @@ plt.show()
 # bars are each image's RMS error.  In the widget you can pick an image, drop it, and see the fit
 # and its uncertainties change.
 
-# %%
+# %% tags=["key-picture"]
 cal = ol.calibrate(session)  # both fits: the intrinsics, then the turntable (below)
 checker = CalibrationChecker.from_session(session, calibration=cal)  # reuses the corners cal detected
 print(checker.calibration.summary())

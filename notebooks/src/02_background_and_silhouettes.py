@@ -70,7 +70,7 @@ plt.show()
 # the widget, move the slider (and the view) and watch the area; the picture below is its
 # default state, drawn with a threshold chosen by hand.
 
-# %%
+# %% tags=["key-picture"]
 picker = ThresholdPicker(session, view=0)
 print(picker.summary())
 picker.threshold = 40.0

@@ -78,7 +78,7 @@ print(f"sub-voxel hull    : {measures['volume_mm3'] / 1000:7.2f} cm3 ({100 * (me
 # that the outline only touches; the sub-voxel hull follows the true section closely, except in
 # the crotch between the legs, which no silhouette shows.
 
-# %%
+# %% tags=["key-picture"]
 from organlab.synthetic import AAAPhantom
 
 inside = AAAPhantom().inside(grid.centers()).reshape(grid.shape)

@@ -92,7 +92,7 @@ for label, occ in (("visual hull", hull), ("after colouring", colored)):
 # deep, narrow part of a pocket, whose floor only a few views glimpse at a grazing angle, stays
 # partly filled: with 18 views of 320 x 240 px, too few pixels see it to disagree.
 
-# %%
+# %% tags=["key-picture"]
 k = int(round((45.0 - grid.origin[2]) / grid.voxel_size))
 lo, hi = grid.bounds
 X, Y = np.meshgrid(*grid.axes()[:2], indexing="ij")

@@ -99,7 +99,7 @@ print(f"complete: {doc['capture']['complete']}, {len(doc['views'])} views, "
 # live viser view of the hull is not part of this notebook yet (the viewer is a separate piece
 # of work).
 
-# %%
+# %% tags=["key-picture"]
 grid = live["grid"]
 k = int(round((80.0 - grid.origin[2]) / grid.voxel_size))
 lo, hi = grid.bounds

@@ -58,7 +58,7 @@ class CalibrationChecker:
         The image shown by :meth:`figure`.
     magnify : float or None
         Factor on the residual vectors in :meth:`figure`; None = automatic
-        (the largest residual drawn a third of a board square long).
+        (the largest residual drawn 0.8 of a board square long).
     """
 
     def __init__(self, images, pattern, *, names, image_size, corners=None, **fit):
@@ -218,7 +218,7 @@ class CalibrationChecker:
             return float(self.magnify)
         worst = float(np.max(np.linalg.norm(rep - det, axis=1)))
         spacing = float(np.median(np.linalg.norm(np.diff(det, axis=0), axis=1)))
-        return max(1.0, round(spacing / 3.0 / max(worst, 1e-6), -1))
+        return max(1.0, round(0.8 * spacing / max(worst, 1e-6), -1))
 
     def figure(self, name=None):
         """The image with detected (+) and reprojected (o) corners and magnified residuals, and per-image RMS bars."""
@@ -239,6 +239,11 @@ class CalibrationChecker:
             ax_img.quiver(det[:, 0], det[:, 1], m * r[:, 0], m * r[:, 1], color="yellow", angles="xy",
                           scale_units="xy", scale=1.0, width=0.004, label=f"residual x {m:g}")
             title += f", RMS {self.calibration.per_image_rms[name]:.3f} px"
+        if det is not None:  # zoom on the board
+            spacing = float(np.median(np.linalg.norm(np.diff(det, axis=0), axis=1)))
+            lo, hi = det.min(axis=0) - 1.5 * spacing, det.max(axis=0) + 1.5 * spacing
+            ax_img.set_xlim(max(lo[0], -0.5), min(hi[0], self.image_size[0] - 0.5))
+            ax_img.set_ylim(min(hi[1], self.image_size[1] - 0.5), max(lo[1], -0.5))
         ax_img.set_title(title, fontsize=10)
         ax_img.legend(fontsize=8, loc="lower right")
         ax_img.set_axis_off()

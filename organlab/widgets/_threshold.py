@@ -152,6 +152,12 @@ class ThresholdPicker:
         overlay[sil.mask] = (0.1, 0.9, 0.2, 0.45)
         ax_img.imshow(overlay)
         ax_img.contour(sil.mask, levels=[0.5], colors=["lime"], linewidths=0.8)
+        if sil.mask.any():  # zoom on the specimen
+            rows, cols = np.nonzero(sil.mask)
+            m = 0.25 * max(np.ptp(rows), np.ptp(cols)) + 10
+            h, w = sil.mask.shape
+            ax_img.set_xlim(max(cols.min() - m, -0.5), min(cols.max() + m, w - 0.5))
+            ax_img.set_ylim(min(rows.max() + m, h - 0.5), max(rows.min() - m, -0.5))
         ax_img.set_title(f"view {self._view}: silhouette {self.area_px} px", fontsize=10)
         ax_img.set_axis_off()
 
