@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import sys
 from pathlib import Path
 
 import pytest
@@ -46,24 +45,16 @@ def _outputs_text(cell):
     return "".join(parts)
 
 
-def _execute(nb, cwd):
+def _execute(nb, cwd, monkeypatch):
     nb = nbformat.from_dict(nb)
     nb.cells = [c for c in nb.cells if "needs-person" not in c.metadata.get("tags", [])]
-    env_path = os.environ.get("PYTHONPATH", "")
     # the kernel is this interpreter (ipykernel's built-in spec) and imports this checkout's organlab
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env_path) if p)
-    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    os.environ.setdefault("MPLBACKEND", "module://matplotlib_inline.backend_inline")
-    try:
-        client = nbclient.NotebookClient(
-            nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(cwd)}},
-            store_widget_state=True,
-        )
-        client.execute()
-    finally:
-        os.environ["PYTHONPATH"] = env_path
-        if not env_path:
-            del os.environ["PYTHONPATH"]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p))
+    monkeypatch.setenv("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    client = nbclient.NotebookClient(
+        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(cwd)}}, store_widget_state=True
+    )
+    client.execute()
     return nb
 
 
@@ -93,12 +84,12 @@ def test_build_splits_solutions():
 @pytest.mark.slow
 @pytest.mark.parametrize("version", build.VERSIONS)
 @pytest.mark.parametrize("source", SOURCES, ids=[p.stem for p in SOURCES])
-def test_notebook_executes(source, version, tmp_path):
+def test_notebook_executes(source, version, monkeypatch):
     nb = build.build_one(source)[version]
     n_exercises = sum("# BEGIN SOLUTION" in line for line in source.read_text().splitlines())
     assert n_exercises >= 2, f"{source.name}: every notebook ends with exercises"
     # executed where Jupyter would run it: next to the written notebook
-    done = _execute(nb, build.target(version, source).parent)
+    done = _execute(nb, build.target(version, source).parent, monkeypatch)
     text = "\n".join(_outputs_text(c) for c in done.cells if c.cell_type == "code")
     errors = [c for c in done.cells if any(o.get("output_type") == "error" for o in c.get("outputs", []))]
     pictures = sum(
