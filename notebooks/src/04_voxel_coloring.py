@@ -128,7 +128,7 @@ plt.show()
 
 # %%
 tuner = CarvingTuner(images, sils, cameras, session.roi_min, session.roi_max, voxel_size=2.0, color_threshold=18.0,
-                     reference_volume=specimen.volume)
+                     reference_volume=specimen.volume, angles_deg=[v.angle_deg for v in session.views])
 tuner.run()
 print(tuner.summary())
 tuner.figure()

@@ -34,6 +34,8 @@ class CarvingTuner:
         Photo-consistency threshold (grey levels); None = no colour test.
     reference_volume : float, optional
         The specimen's true volume, mm^3, to report the error against.
+    angles_deg : sequence of float, optional
+        Table angle of each view, for the agreement plot's axis.
 
     Attributes
     ----------
@@ -45,7 +47,7 @@ class CarvingTuner:
     """
 
     def __init__(self, images, silhouettes, cameras, roi_min, roi_max, *, voxel_size=2.0, tolerance=0,
-                 color_threshold=None, reference_volume=None):
+                 color_threshold=None, reference_volume=None, angles_deg=None):
         n = len(cameras)
         if len(silhouettes) != n or len(images) != n:
             raise OrganlabError(f"got {len(images)} images, {len(silhouettes)} silhouettes and {n} cameras: need one of each per view")
@@ -58,6 +60,7 @@ class CarvingTuner:
         self.tolerance = int(tolerance)
         self.color_threshold = color_threshold
         self.reference_volume = reference_volume
+        self.angles_deg = None if angles_deg is None else [float(a) for a in angles_deg]
         self.result = None
         self.controls = {}
         self.last_figure = None
@@ -76,6 +79,7 @@ class CarvingTuner:
         if silhouettes is None:
             silhouettes = find_silhouettes(session)
         options.setdefault("reference_volume", session.reference.get("volume_mm3"))
+        options.setdefault("angles_deg", [session.views[i].angle_deg for i in idx])
         return cls(images, [silhouettes[i] for i in idx], [cameras[i] for i in idx],
                    session.roi_min, session.roi_max, **options)
 
@@ -160,7 +164,11 @@ class CarvingTuner:
         ag = r["agreement"]
         ax_bar.bar(np.arange(len(ag)), ag, color="tab:green")
         ax_bar.set_ylim(max(0.0, float(ag.min()) - 0.05), 1.0)
-        ax_bar.set_xlabel("view")
+        if self.angles_deg is not None:
+            ax_bar.set_xticks(np.arange(len(ag)), [f"{a:g}" for a in self.angles_deg], fontsize=8)
+            ax_bar.set_xlabel("view (table angle, deg)")
+        else:
+            ax_bar.set_xlabel("view")
         ax_bar.set_ylabel("IoU of silhouette and model's silhouette")
         ax_bar.set_title(self.summary().split(": ", 1)[0], fontsize=9)
         return fig
