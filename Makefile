@@ -13,6 +13,8 @@ $(STAMP): environment.txt pyproject.toml
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
 	@# OpenCV's sample chessboard photos (real calibration data with a published reference) for the tests
 	@if [ ! -f /usr/share/doc/opencv-doc/examples/data/left01.jpg ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends opencv-doc >/dev/null 2>&1 || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends opencv-doc >/dev/null; } || echo "warning: opencv-doc not installed; tests/test_calibration_real.py will be skipped" >&2; fi
+	@# Debian's chromium for the viewer's browser test (Playwright drives it; never 'playwright install')
+	@if [ ! -x /usr/bin/chromium ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1 || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; } || echo "warning: chromium not installed; tests/test_viewer_browser.py will be skipped" >&2; fi
 	@touch $(STAMP)
 
 venv: $(STAMP)

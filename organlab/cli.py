@@ -6,6 +6,7 @@
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
     organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [...]
+    organlab view SESSION [--result DIR] [--port P] [--host H] [--voxel-size MM]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -69,6 +70,8 @@ def _parser():
                    help="where to write the check figures (default: calibration_check beside calibration.json)")
     c.add_argument("--quiet", action="store_true")
 
+    _add_view_parser(sub)
+
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
                        "'organlab synth --help' lists its options)")
     s.add_argument("args", nargs=argparse.REMAINDER)
@@ -103,6 +106,31 @@ def _capture_parser(sub):
     k.add_argument("--quiet", action="store_true")
     # TODO(lead): --view (stream the progressive hull to organlab's live viewer, issue 10): pass
     # on_view=lambda i, angle, image: ... to run_capture once LiveView.add_view is in main.
+
+
+def _add_view_parser(sub):
+    v = sub.add_parser("view", help="live 3D viewer in the browser (viser): the views, the hull as it grows, "
+                       "controls that re-run it")
+    v.add_argument("session", type=Path, help="session folder (holds session.json)")
+    v.add_argument("--result", type=Path, default=None, metavar="DIR",
+                   help="show a folder written by 'organlab reconstruct' instead of reconstructing at start")
+    v.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
+    v.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
+    v.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
+
+
+def _view(a):
+    import time
+
+    from .viewer import SessionViewer
+
+    app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port)
+    print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
+    try:
+        while True:
+            time.sleep(1.0)
+    finally:
+        app.stop()
 
 
 def _bars(quiet):
@@ -201,7 +229,7 @@ def main(argv=None):
         args, handler = argv[1:], _synth
     else:
         args = _parser().parse_args(argv)
-        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture}[args.command]
+        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "view": _view}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

@@ -72,8 +72,10 @@ class Reconstruction:
     silhouettes : list of organlab.silhouette.Silhouette
     report : dict
         The content of ``report.json``.
-    field : (nx, ny, nz) float32 or None
-        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``).
+    field : organlab.carving.BandField or None
+        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``),
+        stored in a narrow band; ``np.asarray(field)`` is the dense
+        ``(nx, ny, nz)`` float32 field.
     colors : (nx, ny, nz, 3) uint8 or None
         Voxel colours (``method='coloring'``).
     calibration : organlab.calibration.Calibration
@@ -147,9 +149,9 @@ def _carve(sils, cameras, grid, *, hull, tolerance, progress):
 
     if hull == "thesis":
         occupancy, field = carve(sils, cameras, grid, tolerance=tolerance), None
-    else:
-        field = hull_field(sils, cameras, grid, tolerance=tolerance, progress=progress)
-        occupancy = field >= 0.5
+    else:  # the field in a narrow band about the surface: cost grows with the surface, not the volume
+        field = hull_field(sils, cameras, grid, tolerance=tolerance, progress=progress, sparse=True)
+        occupancy = field.occupancy()
     progress(len(cameras), len(cameras))
     return occupancy, field
 

@@ -126,8 +126,10 @@ def mesh_from_field(field, grid):
 
     Parameters
     ----------
-    field : (nx, ny, nz) float32 or bool
-        From :func:`organlab.carving.hull_field` (or an occupancy).
+    field : (nx, ny, nz) float32 or bool, or BandField
+        From :func:`organlab.carving.hull_field` (or an occupancy).  A
+        ``BandField`` (``hull_field(..., sparse=True)``) is meshed on its band
+        only: the same surface as its dense field's, its vertices in another order.
     grid : VoxelGrid
 
     Returns
@@ -135,6 +137,10 @@ def mesh_from_field(field, grid):
     Mesh
         World frame, mm, faces oriented outward.
     """
+    from .carving import BandField
+
+    if isinstance(field, BandField):
+        return field.mesh()
     return mesh_from_volume(field, grid, level=0.5)
 
 
