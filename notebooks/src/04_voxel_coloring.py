@@ -106,8 +106,8 @@ ax.set_ylabel("y (mm)")
 plt.show()
 
 # %% [markdown]
-# The whole pipeline does the same with `method="coloring"`, and colours the mesh with the voxels'
-# colours (its surface is the coloured voxel model's).
+# The whole pipeline does the same with `method="coloring"`: its surface is the coloured voxel
+# model's, finished (repaired and remeshed, notebook 05) and coloured with the voxels' colours.
 
 # %%
 rec = ol.reconstruct(session, voxel_size=2.0, method="coloring")
