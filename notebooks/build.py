@@ -1,0 +1,180 @@
+"""Generate the student and the solution notebooks from one source each.
+
+Sources: ``notebooks/src/NN_name.py``, jupytext "percent" scripts.  In a code
+cell, the lines between ``# BEGIN SOLUTION`` and ``# END SOLUTION`` are the
+solution; lines starting ``# STUB: `` right after ``# END SOLUTION`` are the
+student's placeholder (without the prefix).  A solution block without
+``# STUB:`` lines becomes ``raise NotImplementedError(...)`` and its cell is
+tagged ``raises-exception`` in the student version, so a run of the
+notebook goes on past it.
+
+Writes ``notebooks/solutions/NN_name.ipynb`` (markers and stubs removed)
+and ``notebooks/student/NN_name.ipynb`` (solutions replaced by stubs), both
+without outputs.  Needs jupytext and nbformat, not organlab.
+
+Usage::
+
+    python notebooks/build.py            # write both versions of every source
+    python notebooks/build.py --check    # exit 1 if a written notebook is out of date
+    python notebooks/build.py --pictures docs/img   # run the solutions, save each one's key picture
+
+The key picture of a notebook is the first PNG output of its cell tagged
+``key-picture``; ``--pictures`` runs the solution versions (nbclient, the
+current interpreter's kernel) and writes ``DIR/notebook_NN_name.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+SRC = HERE / "src"
+VERSIONS = ("solutions", "student")
+BEGIN, END, STUB = "# BEGIN SOLUTION", "# END SOLUTION", "# STUB: "
+RAISES = "raises-exception"
+
+
+class BuildError(ValueError):
+    pass
+
+
+def split_solution(source, *, where="cell"):
+    """Return ``(solution_source, student_source, raises)`` of one code cell's source."""
+    sol, stu = [], []
+    raises = False
+    lines = source.split("\n")
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        if line.strip() != BEGIN:
+            if line.strip().startswith(END) or line.lstrip().startswith(STUB):
+                raise BuildError(f"{where}: '{line.strip()}' without a '{BEGIN}' before it")
+            sol.append(line)
+            stu.append(line)
+            i += 1
+            continue
+        indent = line[: len(line) - len(line.lstrip())]
+        j = i + 1
+        while j < len(lines) and lines[j].strip() != END:
+            if lines[j].strip() == BEGIN:
+                raise BuildError(f"{where}: nested '{BEGIN}'")
+            sol.append(lines[j])
+            j += 1
+        if j == len(lines):
+            raise BuildError(f"{where}: '{BEGIN}' without '{END}'")
+        k = j + 1
+        stubs = []
+        while k < len(lines) and lines[k].lstrip().startswith(STUB):
+            stubs.append(indent + lines[k].lstrip()[len(STUB):])
+            k += 1
+        if not stubs:
+            stubs = [indent + 'raise NotImplementedError("exercise: write your solution here")']
+            raises = True
+        stu.extend(stubs)
+        i = k
+    return "\n".join(sol), "\n".join(stu), raises
+
+
+def build_one(path):
+    """Both versions of one source: ``{"solutions": nb, "student": nb}``."""
+    import jupytext
+    import nbformat
+
+    src = jupytext.read(path, fmt="py:percent")
+    out = {}
+    for version in VERSIONS:
+        nb = nbformat.v4.new_notebook(metadata={
+            "kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"},
+            "language_info": {"name": "python"},
+            "organlab": {"source": f"src/{path.name}", "version": version},
+        })
+        for n, cell in enumerate(src.cells):
+            tags = list(cell.metadata.get("tags", []))
+            if cell.cell_type == "code":
+                sol, stu, raises = split_solution(cell.source, where=f"{path.name}: cell {n}")
+                text = sol if version == "solutions" else stu
+                if version == "student" and raises:
+                    tags.append(RAISES)
+                new = nbformat.v4.new_code_cell(text)
+            elif cell.cell_type == "markdown":
+                new = nbformat.v4.new_markdown_cell(cell.source)
+            else:
+                new = nbformat.v4.new_raw_cell(cell.source)
+            if tags:
+                new.metadata["tags"] = tags
+            new.id = f"c{n:03d}"
+            nb.cells.append(new)
+        nbformat.validate(nb)
+        out[version] = nb
+    return out
+
+
+def target(version, source):
+    return HERE / version / (Path(source).stem + ".ipynb")
+
+
+def sources():
+    return sorted(SRC.glob("[0-9][0-9]_*.py"))
+
+
+def render(nb):
+    import nbformat
+
+    return nbformat.writes(nb) + "\n"
+
+
+def key_pictures(out_dir, *, timeout=600):
+    """Execute every solution notebook and write the PNG of its ``key-picture`` cell; returns the paths."""
+    import base64
+
+    import nbclient
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for path in sources():
+        nb = build_one(path)["solutions"]
+        nb.cells = [c for c in nb.cells if "needs-person" not in c.metadata.get("tags", [])]
+        nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
+                                resources={"metadata": {"path": str(target("solutions", path).parent)}}).execute()
+        pngs = [o["data"]["image/png"] for c in nb.cells if "key-picture" in c.metadata.get("tags", [])
+                for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
+        if not pngs:
+            raise BuildError(f"{path.name}: no cell tagged key-picture drew a picture")
+        dest = out_dir / f"notebook_{path.stem}.png"
+        dest.write_bytes(base64.b64decode(pngs[0]))
+        written.append(dest)
+        print(f"wrote {dest}")
+    return written
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 if a written notebook differs from its source")
+    ap.add_argument("--pictures", metavar="DIR", help="execute the solution notebooks and save their key pictures in DIR")
+    args = ap.parse_args(argv)
+    if args.pictures:
+        key_pictures(args.pictures)
+        return 0
+    stale = []
+    for path in sources():
+        for version, nb in build_one(path).items():
+            dest = target(version, path)
+            text = render(nb)
+            if args.check:
+                if not dest.is_file() or dest.read_text() != text:
+                    stale.append(str(dest.relative_to(HERE.parent)))
+            else:
+                dest.parent.mkdir(exist_ok=True)
+                dest.write_text(text)
+                print(f"wrote {dest.relative_to(HERE.parent)}")
+    if stale:
+        print("out of date (run python notebooks/build.py): " + ", ".join(stale), file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,214 @@
+"""The carving tuner: voxel size, tolerance and colour threshold against volume and agreement."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import OrganlabError
+from ._common import ipywidgets, new_figure, redraw
+
+
+class CarvingTuner:
+    """Carve a session with chosen parameters and report what they give.
+
+    Each :meth:`run` calls the stage functions as
+    :func:`organlab.pipeline.reconstruct` does: the hull field of the
+    sub-pixel silhouettes (:func:`organlab.carving.hull_field`), optionally
+    voxel colouring of the hull (:func:`organlab.coloring.color_voxels`),
+    then the surface (:func:`organlab.surface.mesh_from_volume`).
+
+    Parameters
+    ----------
+    images : sequence of (H, W, 3) uint8
+        The views (used by the colour test).
+    silhouettes : sequence of organlab.silhouette.Silhouette
+        One per view.
+    cameras : sequence of organlab.camera.Camera
+        One per view.
+    roi_min, roi_max : (3,) float, mm, world frame
+        The box carved.
+    voxel_size : float, mm
+    tolerance : int
+        Views allowed to disagree before a voxel is carved.
+    color_threshold : float or None
+        Photo-consistency threshold (grey levels); None = no colour test.
+    reference_volume : float, optional
+        The specimen's true volume, mm^3, to report the error against.
+    angles_deg : sequence of float, optional
+        Table angle of each view, for the agreement plot's axis.
+
+    Attributes
+    ----------
+    result : dict or None
+        After :meth:`run`: ``grid``, ``occupancy``, ``mesh``, ``volume_mm3``
+        (the mesh's), ``voxel_volume_mm3``, ``agreement`` ((n_views,) IoU of
+        each silhouette with the model's silhouette in that view),
+        ``coloring`` (the colouring's stats or None), ``error_pct`` (or None).
+    """
+
+    def __init__(self, images, silhouettes, cameras, roi_min, roi_max, *, voxel_size=2.0, tolerance=0,
+                 color_threshold=None, reference_volume=None, angles_deg=None):
+        n = len(cameras)
+        if len(silhouettes) != n or len(images) != n:
+            raise OrganlabError(f"got {len(images)} images, {len(silhouettes)} silhouettes and {n} cameras: need one of each per view")
+        self.images = list(images)
+        self.silhouettes = list(silhouettes)
+        self.cameras = list(cameras)
+        self.roi_min = np.asarray(roi_min, np.float64)
+        self.roi_max = np.asarray(roi_max, np.float64)
+        self.voxel_size = float(voxel_size)
+        self.tolerance = int(tolerance)
+        self.color_threshold = color_threshold
+        self.reference_volume = reference_volume
+        self.angles_deg = None if angles_deg is None else [float(a) for a in angles_deg]
+        self.result = None
+        self.controls = {}
+        self.last_figure = None
+
+    @classmethod
+    def from_session(cls, session, cameras, silhouettes=None, *, views=None, **options):
+        """The tuner of a session with its cameras (e.g. from the calibration).
+
+        ``views``: indices of the views to use (default all); silhouettes are
+        found with :func:`organlab.silhouette.silhouettes` when not given.
+        """
+        from ..silhouette import silhouettes as find_silhouettes
+
+        idx = list(range(len(session.views))) if views is None else [int(i) for i in views]
+        images = [session.read(session.views[i].image, key=f"views[{i}].image") for i in idx]
+        if silhouettes is None:
+            silhouettes = find_silhouettes(session)
+        options.setdefault("reference_volume", session.reference.get("volume_mm3"))
+        options.setdefault("angles_deg", [session.views[i].angle_deg for i in idx])
+        return cls(images, [silhouettes[i] for i in idx], [cameras[i] for i in idx],
+                   session.roi_min, session.roi_max, **options)
+
+    # ------------------------------------------------------------- run
+    def run(self):
+        """Carve with the current parameters; returns (and keeps) ``result``."""
+        from ..carving import hull_field
+        from ..datasets import render_silhouette
+        from ..grid import VoxelGrid
+        from ..surface import mesh_from_volume
+
+        grid = VoxelGrid.from_roi(self.roi_min, self.roi_max, self.voxel_size)
+        field = hull_field([s.coverage for s in self.silhouettes], self.cameras, grid, tolerance=self.tolerance)
+        occupancy = field >= 0.5
+        if not occupancy.any():
+            raise OrganlabError("carving left no voxel: lower the tolerance's strictness or check the silhouettes")
+        coloring = None
+        surface_of = field
+        if self.color_threshold is not None:
+            from ..coloring import color_voxels
+
+            res = color_voxels(self.images, self.cameras, occupancy, grid, threshold=float(self.color_threshold),
+                               masks=[s.mask for s in self.silhouettes])
+            occupancy, coloring, surface_of = res.occupancy, res.stats(), res.occupancy
+        mesh = mesh_from_volume(surface_of, grid, level=0.5)
+        agreement = []
+        for s, cam in zip(self.silhouettes, self.cameras):
+            model = render_silhouette(cam, mesh=mesh)
+            union = np.count_nonzero(model | s.mask)
+            agreement.append(np.count_nonzero(model & s.mask) / union if union else 1.0)
+        ref = self.reference_volume
+        self.result = {
+            "grid": grid,
+            "occupancy": occupancy,
+            "mesh": mesh,
+            "volume_mm3": float(mesh.volume),
+            "voxel_volume_mm3": grid.volume_of(occupancy),
+            "agreement": np.asarray(agreement),
+            "coloring": coloring,
+            "error_pct": None if not ref else 100.0 * (float(mesh.volume) - ref) / ref,
+        }
+        return self.result
+
+    def summary(self):
+        """One line: parameters, volume, error, worst agreement."""
+        r = self.result if self.result is not None else self.run()
+        text = (
+            f"{self.voxel_size:g} mm voxels, tolerance {self.tolerance}, colour test "
+            + ("off" if self.color_threshold is None else f"{self.color_threshold:g}")
+            + f": mesh volume {r['volume_mm3'] / 1000:.2f} cm3"
+        )
+        if r["error_pct"] is not None:
+            text += f" ({r['error_pct']:+.2f} % vs reference)"
+        return text + f", agreement (IoU) worst view {r['agreement'].min():.3f}, mean {r['agreement'].mean():.3f}"
+
+    # ---------------------------------------------------------- pictures
+    def mesh_picture(self, *, window_size=(640, 560)):
+        """(H, W, 3) uint8: the mesh rendered off-screen (pyvista, :func:`organlab.figures.mesh_snapshot`)."""
+        import tempfile
+        from pathlib import Path
+
+        from matplotlib.image import imread
+
+        from ..figures import mesh_snapshot
+
+        r = self.result if self.result is not None else self.run()
+        with tempfile.TemporaryDirectory() as d:
+            path = mesh_snapshot(r["mesh"], Path(d) / "mesh.png", window_size=window_size)
+            return (imread(path)[..., :3] * 255).astype(np.uint8)
+
+    def figure(self):
+        """The mesh picture and the per-view agreement bars; a matplotlib Figure."""
+        r = self.result if self.result is not None else self.run()
+        fig = new_figure(11, 4.2)
+        ax_mesh, ax_bar = fig.subplots(1, 2, width_ratios=[1, 1.2])
+        ax_mesh.imshow(self.mesh_picture())
+        ax_mesh.set_axis_off()
+        title = f"{r['volume_mm3'] / 1000:.2f} cm3"
+        if r["error_pct"] is not None:
+            title += f" ({r['error_pct']:+.2f} %)"
+        ax_mesh.set_title(title, fontsize=10)
+        ag = r["agreement"]
+        ax_bar.bar(np.arange(len(ag)), ag, color="tab:green")
+        ax_bar.set_ylim(max(0.0, float(ag.min()) - 0.05), 1.0)
+        if self.angles_deg is not None:
+            ax_bar.set_xticks(np.arange(len(ag)), [f"{a:g}" for a in self.angles_deg], fontsize=8)
+            ax_bar.set_xlabel("view (table angle, deg)")
+        else:
+            ax_bar.set_xlabel("view")
+        ax_bar.set_ylabel("IoU of silhouette and model's silhouette")
+        ax_bar.set_title(self.summary().split(": ", 1)[0], fontsize=9)
+        return fig
+
+    # ------------------------------------------------------------ widget
+    def widget(self):
+        """ipywidgets controls (voxel size, tolerance, colour test and threshold) over the figure; a VBox.
+
+        The controls are kept in ``self.controls`` (``voxel_size``,
+        ``tolerance``, ``color``, ``color_threshold``, ``summary``,
+        ``output``); setting a ``value`` re-runs the carving.
+        The figure last drawn into the Output is ``self.last_figure``.
+        """
+        w = ipywidgets()
+        c = self.controls = {
+            "voxel_size": w.FloatSlider(value=self.voxel_size, min=1.0, max=6.0, step=0.5, description="voxel (mm)",
+                                        continuous_update=False),
+            "tolerance": w.IntSlider(value=self.tolerance, min=0, max=max(1, min(4, len(self.cameras) - 1)),
+                                     description="tolerance", continuous_update=False),
+            "color": w.Checkbox(value=self.color_threshold is not None, description="colour test"),
+            "color_threshold": w.FloatSlider(value=self.color_threshold or 18.0, min=2.0, max=60.0, step=1.0,
+                                             description="colour thr.", continuous_update=False),
+            "summary": w.Label(""),
+            "output": w.Output(),
+        }
+
+        def refresh(_change=None):
+            self.voxel_size = c["voxel_size"].value
+            self.tolerance = c["tolerance"].value
+            self.color_threshold = c["color_threshold"].value if c["color"].value else None
+            try:
+                self.run()
+                c["summary"].value = self.summary()
+            except OrganlabError as e:
+                c["summary"].value = f"error: {e}"
+                return
+            self.last_figure = redraw(c["output"], self.figure)
+
+        for k in ("voxel_size", "tolerance", "color", "color_threshold"):
+            c[k].observe(refresh, names="value")
+        refresh()
+        return w.VBox([w.HBox([c["voxel_size"], c["tolerance"]]), w.HBox([c["color"], c["color_threshold"]]),
+                       c["summary"], c["output"]])
