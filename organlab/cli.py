@@ -13,6 +13,7 @@ traceback for them.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -24,8 +25,8 @@ def _positive_float(text):
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return v
 
 
@@ -51,6 +52,10 @@ def _parser():
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
     r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--strict", action="store_true", help="exit with status 2 when the run raises a warning "
+                   "(views that disagree with the model, a poor turntable fit, ...)")
+    r.add_argument("--max-memory", default=None, metavar="SIZE",
+                   help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
     c.add_argument("session", type=Path)
@@ -72,7 +77,10 @@ def _bars(quiet):
 
 def _reconstruct(a):
     from .pipeline import reconstruct, summary_table, write_outputs
+    from .preflight import atomic_output_dir, check_output_dir, parse_memory
 
+    check_output_dir(a.out)  # before the long work
+    max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
     rec = reconstruct(
         a.session,
         voxel_size=a.voxel_size,
@@ -82,19 +90,45 @@ def _reconstruct(a):
         color_threshold=a.color_threshold,
         tolerance=a.tolerance,
         progress=_bars(a.quiet),
+        max_memory=max_memory,
     )
-    paths = write_outputs(rec, a.out)
-    if a.picture:
-        from .figures import mesh_snapshot
-
-        ref = rec.report.get("mesh_volume_error_pct")
-        title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {a.voxel_size:g} mm"
-        title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
-        paths["picture"] = mesh_snapshot(rec.mesh, a.out / "mesh.png", title=title)
+    with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
+        paths = write_outputs(rec, tmp, atomic=False)
+        if a.picture:
+            paths.update(_pictures(rec, tmp, a.voxel_size))
     print(f"organlab reconstruct: {rec.session.name} -> {a.out}")
     print(summary_table(rec.report))
     print(f"  wrote {', '.join(p.name for p in paths.values())}")
+    warnings = rec.report.get("warnings", [])
+    for w in warnings:
+        print(f"organlab: warning: {w}", file=sys.stderr)
+    if warnings and a.strict:
+        print(f"organlab: error: {len(warnings)} warning(s) and --strict", file=sys.stderr)
+        return 2
     return 0
+
+
+def _pictures(rec, folder, voxel_size):
+    from .agreement import model_mask
+    from .figures import agreement_chart, agreement_overlay, mesh_snapshot
+
+    ref = rec.report.get("mesh_volume_error_pct")
+    title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {voxel_size:g} mm"
+    title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
+    out = {"picture": mesh_snapshot(rec.mesh, folder / "mesh.png", title=title)}
+    if rec.report.get("agreement"):
+        out["agreement"] = agreement_chart(rec.report, folder / "agreement.png")
+        worst = max(range(len(rec.cameras)), key=lambda i: rec.report["views"][i]["agreement"]["disagreement"])
+        sil = rec.silhouettes[worst].coverage >= 0.5
+        view = rec.session.views[worst]
+        a = rec.report["views"][worst]["agreement"]
+        out["worst_view"] = agreement_overlay(
+            rec.session.read(view.image, key=f"views[{worst}].image"), sil,
+            model_mask(rec.mesh, rec.cameras[worst], sil.shape), folder / "worst_view.png",
+            title=f"{rec.session.relpath(view.image)}: IoU {a['iou']:.3f}, {100 * a['disagreement']:.2f} % unexplained "
+                  "(red: silhouette only, blue: model only)",
+        )
+    return out
 
 
 def _calibrate(a):

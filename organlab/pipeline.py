@@ -118,6 +118,7 @@ def reconstruct(
     color_threshold=None,
     tolerance=0,
     progress=None,
+    max_memory=None,
 ):
     """Reconstruct a session: silhouettes, visual hull, (colouring), surface.
 
@@ -146,6 +147,10 @@ def reconstruct(
         Views allowed to disagree before a voxel is carved.
     progress : callable(stage) -> bar, optional
         Factory of per-stage progress bars (``bar(done, total)``, ``bar.close()``).
+    max_memory : int, optional
+        Bytes the voxel grid may take (estimated before any work); default the
+        memory available now.  Larger grids are refused with the largest voxel
+        size that fits (organlab.preflight).
 
     Returns
     -------
@@ -153,16 +158,21 @@ def reconstruct(
     """
     if not isinstance(session, Session):
         session = load_session(session)
-    if not (isinstance(voxel_size, (int, float)) and voxel_size > 0):
-        raise SessionError(f"--voxel-size must be a positive number of mm, got {voxel_size!r}")
+    from .preflight import check_grid_memory, check_voxel_size, check_writable
+
+    voxel_size = check_voxel_size(voxel_size)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if hull not in HULL_METHODS:
         raise ValueError(f"hull must be one of {HULL_METHODS}, got {hull!r}")
-    if threshold is not None and not threshold > 0:
-        raise SessionError(f"--threshold must be > 0 grey levels, got {threshold}")
+    if threshold is not None and not (np.isfinite(threshold) and threshold > 0):
+        raise SessionError(f"--threshold must be a finite number of grey levels > 0, got {threshold}")
+    if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
+        raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")
     if not session.views:
         raise SessionError(f"{session.json_path}: views: the session has no views to reconstruct (calibration-only session)")
+    check_grid_memory(session.roi_min, session.roi_max, voxel_size, max_memory=max_memory, method=method,
+                      tolerance=tolerance if isinstance(tolerance, int) else 0, where=str(session.json_path))
     progress = progress or (lambda stage: NullProgress())
     timings = {}
 
@@ -171,10 +181,15 @@ def reconstruct(
     if _needs_calibration(session):
         from . import calibration as calib
 
+        check_writable(session.root, what="calibration.json")
         bar = progress("calibration")
         t0 = time.perf_counter()
         calibration = calib.calibrate_session(session, progress=bar)
-        calib.write_calibration(session, calibration)
+        try:
+            calib.write_calibration(session, calibration)
+        except OSError as e:
+            raise SessionError(f"{session.calibration_path}: cannot write the calibration ({e.strerror or e}); "
+                               f"run 'organlab reconstruct' on a writable copy of the session") from None
         timings["calibration"] = time.perf_counter() - t0
         bar.close()
     cameras = session_cameras(session, calibration)
@@ -244,7 +259,20 @@ def reconstruct(
     bar.close()
 
     report = _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings, method, hull)
+    _add_agreement(report, session, grid, mesh, cameras, sils)
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration)
+
+
+def _add_agreement(report, session, grid, mesh, cameras, sils):
+    """View agreement (organlab.agreement) into the report: per view, worst views, warnings."""
+    from .agreement import view_agreement
+
+    names = [session.relpath(v.image) for v in session.views]
+    agr = view_agreement(mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
+    for row, a in zip(report["views"], agr.views):
+        row["agreement"] = a
+    report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
+    report.setdefault("warnings", []).extend(agr.warnings)
 
 
 def _vertex_colors(vertices, colored, colors, grid):
@@ -296,7 +324,7 @@ def _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings,
     return r
 
 
-def write_outputs(rec, out_dir):
+def write_outputs(rec, out_dir, *, atomic=True):
     """Write ``report.json``, ``voxels.npz``, ``mesh.ply`` and ``mesh.stl``.
 
     Parameters
@@ -304,11 +332,24 @@ def write_outputs(rec, out_dir):
     rec : Reconstruction
     out_dir : str or Path
         Created when missing.
+    atomic : bool
+        Write into a temporary folder beside ``out_dir`` and replace
+        ``out_dir`` with it only when every file is written
+        (:func:`organlab.preflight.atomic_output_dir`): an interrupted run
+        leaves the previous result intact, and no file of an earlier run
+        stays mixed with the new ones.  ``False`` writes into ``out_dir``
+        directly (for a caller that manages its own temporary folder).
 
     Returns
     -------
     dict of str -> Path
     """
+    if atomic:
+        from .preflight import atomic_output_dir
+
+        with atomic_output_dir(out_dir) as tmp:
+            paths = write_outputs(rec, tmp, atomic=False)
+        return {k: Path(out_dir) / p.name for k, p in paths.items()}
     from .surface import write_ply, write_stl
 
     out = Path(out_dir)
@@ -344,6 +385,10 @@ def summary_table(report):
         rows.append(("calib. RMS", f"{report['camera']['rms_px']:.3f} px"))
     if "turntable_rms_px" in report:
         rows.append(("turntable RMS", f"{report['turntable_rms_px']:.3f} px"))
+    if report.get("agreement"):
+        worst = [(r["image"], r["agreement"]) for r in report["views"] if r["image"] in report["agreement"]["worst_views"]]
+        worst.sort(key=lambda x: -x[1]["disagreement"])
+        rows.append(("worst views", ", ".join(f"{n} (IoU {a['iou']:.3f}, {100 * a['disagreement']:.2f} % unexplained)" for n, a in worst[:2])))
     for k, v in report["timings_s"].items():
         rows.append((f"time {k}", f"{v:.2f} s"))
     w = max(len(k) for k, _ in rows)
