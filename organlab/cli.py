@@ -30,8 +30,15 @@ def _positive_float(text):
     return v
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``organlab reconstruct: error: ... (see --help)``, exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def _parser():
-    p = argparse.ArgumentParser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
+    p = _Parser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("reconstruct", help="carve the specimen of a session and write voxels, mesh and report")

@@ -273,6 +273,8 @@ def _add_agreement(report, session, grid, mesh, cameras, sils):
         row["agreement"] = a
     report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
     report.setdefault("warnings", []).extend(agr.warnings)
+    if getattr(session, "notes", ()):
+        report["notes"] = list(session.notes)  # what loading corrected (re-orthonormalised rotations)
 
 
 def _vertex_colors(vertices, colored, colors, grid):

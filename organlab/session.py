@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, nearest_rotation
 from .errors import SessionError
 
 __all__ = [
@@ -79,6 +79,7 @@ class Session:
     reference: dict = field(default_factory=dict)
     calibration: dict | None = None  # contents of calibration.json when present
     raw: dict = field(default_factory=dict)
+    notes: tuple = ()  # of str: what loading corrected (e.g. a re-orthonormalised rotation)
 
     @property
     def json_path(self):
@@ -305,6 +306,7 @@ def load_session(path, *, check_images=True):
     if not isinstance(views_raw, list):
         _fail(sj, "views", "is required: a list of {'image': path, 'angle_deg': number} (may be empty)")
     views = []
+    notes = []
     for i, v in enumerate(views_raw):
         key = f"views[{i}]"
         image, a = _image_at_angle(v, key, sj, "give the table angle of every view")
@@ -315,8 +317,13 @@ def load_session(path, *, check_images=True):
                 _fail(sj, key + ".pose", "must be {'R': 3x3, 't': [3]}")
             R = _matrix(p.get("R"), (3, 3), sj, key + ".pose.R")
             t = _matrix(p.get("t"), (3,), sj, key + ".pose.t")
-            if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-                _fail(sj, key + ".pose.R", "is not a rotation matrix")
+            try:
+                R_orth, err = nearest_rotation(R)
+            except ValueError as e:
+                _fail(sj, key + ".pose.R", f"{e}; give the rotation with more digits")
+            if err > 1e-12:
+                notes.append(f"{key}.pose.R re-orthonormalised (max |R R^T - I| was {err:.2g})")
+            R = R_orth
             pose = (R, t)
         mask = None
         if v.get("mask") is not None:
@@ -365,6 +372,7 @@ def load_session(path, *, check_images=True):
         reference=dict(reference),
         calibration=calibration,
         raw=raw,
+        notes=tuple(notes),
     )
     if check_images:
         _check_images(session)
