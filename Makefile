@@ -29,7 +29,7 @@ bench: $(STAMP)
 
 # Regenerate the bundled sample session (deterministic from its seed).
 sample: $(STAMP)
-	$(BIN)/python -m organlab.synthetic sample_sessions/aaa_phantom --seed 0 --no-camera --no-poses
+	$(BIN)/python -m organlab.synthetic sample_sessions/aaa_phantom --seed 0 --no-camera --no-poses --force
 
 # also drops numba's on-disk kernel cache (it does not notice edits of organlab/_nbcam.py)
 clean:

@@ -1084,7 +1084,12 @@ def main(argv=None):
     ap.add_argument("--no-camera", action="store_true", help="do not put the true intrinsics in session.json")
     ap.add_argument("--no-poses", action="store_true", help="do not put the true view poses in session.json")
     ap.add_argument("--preview", default=None, help="also write a half-size PNG of view 0 here")
+    ap.add_argument("--force", action="store_true", help="write into a folder that is not empty (overwrites its session)")
     args = ap.parse_args(argv)
+    target = Path(args.out)
+    if target.exists() and (not target.is_dir() or any(target.iterdir())) and not args.force:
+        what = "is a file" if not target.is_dir() else "is not empty"
+        ap.exit(2, f"organlab synth: error: {target}: {what}; give a new folder, or --force to overwrite its session\n")
     kw = {}
     if args.small:
         kw = dict(image_size=(320, 240), n_views=12, n_intrinsic=8, n_turntable=6, n_background=5)

@@ -208,3 +208,12 @@ def test_calibration_that_cannot_be_written_is_one_line(tmp_path, capsys):
     assert main(["reconstruct", str(root), "--out", str(tmp_path / "o"), "--quiet", "--voxel-size", "4"]) == 2
     _one_line_error(capsys, "calibration.json", "cannot write")
     assert not (tmp_path / "o").exists()
+
+
+def test_synth_refuses_a_non_empty_folder(tmp_path, capsys):
+    (tmp_path / "session.json").write_text("{}")
+    with pytest.raises(SystemExit) as e:
+        main(["synth", str(tmp_path), "--small"])
+    assert e.value.code == 2
+    _one_line_error(capsys, str(tmp_path), "--force")
+    assert (tmp_path / "session.json").read_text() == "{}"
