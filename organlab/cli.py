@@ -3,6 +3,7 @@
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
                          [--method hull|coloring|space_carving] [--color-threshold X]
     organlab calibrate SESSION [--figures DIR]
+    organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--force]
     organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
@@ -13,6 +14,7 @@ traceback for them.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from pathlib import Path
@@ -70,10 +72,45 @@ def _parser():
                    help="where to write the check figures (default SESSION/calibration_check)")
     c.add_argument("--quiet", action="store_true")
 
+    _init_parser(sub)
+
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
                        "'organlab synth --help' lists its options)")
     s.add_argument("args", nargs=argparse.REMAINDER)
     return p
+
+
+def _init_parser(sub):
+    i = sub.add_parser("init", help="write a session.json for a folder of images (views sorted by name), to edit")
+    i.add_argument("folder", type=Path, help="folder with views/ (or the view images), background/, calibration/...")
+    i.add_argument("--step", type=float, required=True, metavar="DEG", help="table rotation between views, degrees")
+    i.add_argument("--start", type=float, default=0.0, metavar="DEG", help="angle of the first view (default 0)")
+    i.add_argument("--board", default="9x6", metavar="CxR", help="board's inner corners, columns x rows (default 9x6)")
+    i.add_argument("--square", type=_positive_float, default=20.0, metavar="MM", help="board's square size (default 20)")
+    i.add_argument("--roi", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1", help="voxel space, mm (default a 200 mm box)")
+    i.add_argument("--force", action="store_true", help="overwrite an existing session.json")
+
+
+def _init(a):
+    from .scaffold import init_session
+
+    try:
+        corners = tuple(int(v) for v in a.board.lower().split("x"))
+        roi = None if a.roi is None else [float(v) for v in a.roi.split(",")]
+    except ValueError:
+        raise OrganlabError(f"--board must be like 9x6 and --roi 6 numbers separated by commas, got {a.board!r}, {a.roi!r}") from None
+    if len(corners) != 2 or min(corners) < 2:
+        raise OrganlabError(f"--board must be COLUMNSxROWS of inner corners (each >= 2), got {a.board!r}")
+    path, notes = init_session(a.folder, step_deg=a.step, start_deg=a.start, inner_corners=corners,
+                               square_size=a.square, roi=roi, force=a.force)
+    doc = json.loads(path.read_text())
+    print(f"organlab init: wrote {path} ({len(doc['views'])} views, "
+          f"{len(doc.get('background_images', []))} background frames, "
+          f"{len(doc.get('calibration', {}).get('intrinsic_images', []))} intrinsic and "
+          f"{len(doc.get('calibration', {}).get('turntable_images', []))} turntable board images); check:")
+    for n in notes:
+        print(f"  - {n}")
+    return 0
 
 
 def _bars(quiet):
@@ -171,7 +208,7 @@ def main(argv=None):
         args, handler = argv[1:], _synth
     else:
         args = _parser().parse_args(argv)
-        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate}[args.command]
+        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "init": _init}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

@@ -217,3 +217,30 @@ def test_synth_refuses_a_non_empty_folder(tmp_path, capsys):
     assert e.value.code == 2
     _one_line_error(capsys, str(tmp_path), "--force")
     assert (tmp_path / "session.json").read_text() == "{}"
+
+
+# ------------------------------------------------------------------ organlab init
+def test_init_writes_the_samples_session(tmp_path, capsys):
+    """The sample's images without their session.json: init finds the same views, angles and board images."""
+    root = tmp_path / "mine"
+    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("session.json", "truth.json", "calibration.json", "calibration_check"))
+    assert main(["init", str(root), "--step", "10", "--roi=-70,-70,0,70,70,200"]) == 0
+    assert "36 views, 20 background frames, 15 intrinsic and 10 turntable" in capsys.readouterr().out
+    mine = load_session(root)  # validated images included
+    ref = load_session(SAMPLE, check_images=False)
+    assert [(v.image.name, v.angle_deg) for v in mine.views] == [(v.image.name, v.angle_deg) for v in ref.views]
+    assert [(p.name, a) for p, a in mine.turntable_images] == [(p.name, a) for p, a in ref.turntable_images]
+    assert [p.name for p in mine.intrinsic_images] == [p.name for p in ref.intrinsic_images]
+    assert [p.name for p in mine.background_images] == [p.name for p in ref.background_images]
+    assert mine.pattern == ref.pattern and mine.image_size == ref.image_size
+    np.testing.assert_array_equal(mine.roi_max, ref.roi_max)
+    # an existing session.json is kept; a flat folder of views without background is refused with the fix
+    assert main(["init", str(root), "--step", "10"]) == 2
+    _one_line_error(capsys, "session.json", "--force")
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for p in sorted((SAMPLE / "views").iterdir())[:3]:
+        shutil.copy(p, flat / f"img{int(p.stem) // 10}.jpg")
+    assert main(["init", str(flat), "--step", "-120"]) == 2
+    _one_line_error(capsys, "background_images")
+    assert not (flat / "session.json").exists()
