@@ -234,7 +234,7 @@ def test_init_writes_the_samples_session(tmp_path, capsys):
     assert [p.name for p in mine.background_images] == [p.name for p in ref.background_images]
     assert mine.pattern == ref.pattern and mine.image_size == ref.image_size
     np.testing.assert_array_equal(mine.roi_max, ref.roi_max)
-    # an existing session.json is kept; a flat folder of views without background is refused with the fix
+    # an existing session.json is kept; a flat folder of views without board images is refused with the fix
     assert main(["init", str(root), "--step", "10"]) == 2
     _one_line_error(capsys, "session.json", "--force")
     flat = tmp_path / "flat"
@@ -242,5 +242,5 @@ def test_init_writes_the_samples_session(tmp_path, capsys):
     for p in sorted((SAMPLE / "views").iterdir())[:3]:
         shutil.copy(p, flat / f"img{int(p.stem) // 10}.jpg")
     assert main(["init", str(flat), "--step", "-120"]) == 2
-    _one_line_error(capsys, "background_images")
+    _one_line_error(capsys, "session.json", "no intrinsics")
     assert not (flat / "session.json").exists()
