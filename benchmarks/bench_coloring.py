@@ -44,16 +44,13 @@ def _vm(key):
 
 def _cameras(session):
     """The views' cameras as the pipeline gets them; calibrates in memory when calibration.json is missing."""
-    from organlab import pipeline
+    from organlab.calibration import calibration_for
 
-    calibration, source = session.calibration, "from calibration.json"
-    if pipeline._needs_calibration(session):
-        from organlab import calibration as calib
-
-        t0 = time.perf_counter()
-        calibration = calib.calibrate_session(session)
-        source = f"calibrated from the session's board images ({time.perf_counter() - t0:.1f} s, not written)"
-    return pipeline.session_cameras(session, calibration), source
+    t0 = time.perf_counter()
+    cal, how = calibration_for(session)
+    source = {"reused": "from calibration.json", "session.json": "given in session.json"}.get(
+        how, f"calibrated from the session's board images ({time.perf_counter() - t0:.1f} s, not written)")
+    return cal.cameras(session), source
 
 
 def main():

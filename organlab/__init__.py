@@ -1,17 +1,66 @@
 """organlab: from a specimen on a turntable to a measured, watertight 3D model.
 
-Stages, one module each: :mod:`organlab.session` (session folders),
-:mod:`organlab.camera` (the camera model), :mod:`organlab.calibration`,
-:mod:`organlab.silhouette`, :mod:`organlab.carving`, :mod:`organlab.coloring`,
-:mod:`organlab.surface`, and :mod:`organlab.pipeline` which chains them.
-Heavy modules load only when used, so ``import organlab`` stays fast.
+The whole pipeline, one public function per stage::
+
+    import organlab as ol
+    s = ol.load_session("sample_sessions/aaa_phantom")
+    cal = ol.calibrate(s)                        # or ol.Calibration.load(path); cal.save(path)
+    sils = ol.silhouettes(s, threshold=None)
+    grid = ol.VoxelGrid.from_session(s, voxel_size=1.0)
+    field = ol.hull_field(sils, cal.cameras(s), grid)
+    mesh = ol.mesh_from_field(field, grid)
+    ol.measure(mesh)                             # volume, area, watertight
+
+Stages, one module (or package) each: :mod:`organlab.session` (session
+folders), :mod:`organlab.camera` (the camera model),
+:mod:`organlab.calibration`, :mod:`organlab.silhouette`,
+:mod:`organlab.carving`, :mod:`organlab.coloring`, :mod:`organlab.surface`,
+and :mod:`organlab.pipeline`, which chains them (:func:`reconstruct`).
+Names other than the light ones below load their module on first use, so
+``import organlab`` stays fast.
 """
+
+from importlib import import_module
 
 from .camera import Camera
 from .errors import CalibrationError, OrganlabError, SessionError
 from .grid import VoxelGrid
-from .session import load_session
+from .session import Session, load_session
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
-__all__ = ["Camera", "VoxelGrid", "load_session", "OrganlabError", "SessionError", "CalibrationError"]
+#: Public name -> module that defines it (loaded on first access).
+_LAZY = {
+    "Calibration": "calibration",
+    "calibrate": "calibration",
+    "calibration_for": "calibration",
+    "Silhouette": "silhouette",
+    "silhouettes": "silhouette",
+    "hull_field": "carving",
+    "carve": "carving",
+    "ProgressiveCarver": "carving",
+    "color_voxels": "coloring",
+    "Mesh": "surface",
+    "mesh_from_field": "surface",
+    "mesh_from_volume": "surface",
+    "measure": "surface",
+    "Reconstruction": "pipeline",
+    "reconstruct": "pipeline",
+    "write_outputs": "pipeline",
+}
+
+__all__ = ["Camera", "VoxelGrid", "Session", "load_session", "OrganlabError", "SessionError", "CalibrationError",
+           *_LAZY]
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'organlab' has no attribute {name!r}")
+    value = getattr(import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -2,9 +2,11 @@
 
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
                          [--method hull|coloring|space_carving] [--color-threshold X]
-    organlab calibrate SESSION [--figures DIR]
+                         [--calibration PATH] [--recalibrate]
+    organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
     organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--force]
     organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
+    organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [...]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -59,6 +61,10 @@ def _parser():
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
                    help="photo-consistency threshold (grey levels) for --method coloring/space_carving")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
+    r.add_argument("--calibration", type=Path, default=None, metavar="PATH",
+                   help="use this calibration.json (checked against the session) instead of the session's own")
+    r.add_argument("--recalibrate", action="store_true",
+                   help="calibrate from the board images even when the session's calibration.json matches it")
     r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     r.add_argument("--strict", action="store_true", help="exit with status 2 when the run raises a warning "
@@ -68,8 +74,13 @@ def _parser():
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
     c.add_argument("session", type=Path)
+    where = c.add_mutually_exclusive_group(required=True)
+    where.add_argument("--out", type=Path, metavar="DIR",
+                       help="write DIR/calibration.json and the check figures in DIR/calibration_check")
+    where.add_argument("--in-place", action="store_true",
+                       help="write them into the session folder (later reconstructions reuse its calibration.json)")
     c.add_argument("--figures", type=Path, default=None, metavar="DIR",
-                   help="where to write the check figures (default SESSION/calibration_check)")
+                   help="where to write the check figures (default: calibration_check beside calibration.json)")
     c.add_argument("--quiet", action="store_true")
 
     _init_parser(sub)
@@ -77,6 +88,7 @@ def _parser():
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
                        "'organlab synth --help' lists its options)")
     s.add_argument("args", nargs=argparse.REMAINDER)
+    _capture_parser(sub)
     return p
 
 
@@ -113,6 +125,35 @@ def _init(a):
     return 0
 
 
+def _capture_parser(sub):
+    k = sub.add_parser("capture", help="capture a session with a turntable and a camera (or the simulated rig); "
+                       "continues a stopped capture")
+    k.add_argument("--turntable", required=True, metavar="sim|PORT", help="'sim' (simulated MDrive on a pty) or a serial port")
+    k.add_argument("--camera", default=None, metavar="sim|INDEX|URL", help="'sim', a device index, a URL or folder:DIR "
+                   "(default: sim with the simulated table, else 0)")
+    k.add_argument("--step", type=_positive_float, default=10.0, metavar="DEG", help="table step between stops (default 10)")
+    k.add_argument("--out", type=Path, required=True, metavar="SESSION", help="session folder")
+    k.add_argument("--background", type=int, default=20, metavar="N", help="frames of the empty scene (default 20)")
+    k.add_argument("--intrinsics", type=int, default=0, metavar="N", help="hand-held board images for the intrinsics (default 0)")
+    k.add_argument("--camera-file", type=Path, default=None, metavar="JSON",
+                   help="known intrinsics: a calibration.json or session.json with 'camera'")
+    k.add_argument("--no-board", action="store_true", help="no board images on the table (no turntable calibration, no audit)")
+    k.add_argument("--audit-limit", type=_positive_float, default=None, metavar="DEG", help="angle audit limit (default 0.5)")
+    k.add_argument("--no-stop-on-flag", action="store_true", help="flag a failed angle audit but go on")
+    k.add_argument("--steps-per-rev", type=int, default=200, help="motor full steps per revolution (default 200)")
+    k.add_argument("--microsteps", type=int, default=256, help="MS microstep resolution (default 256)")
+    k.add_argument("--gear-ratio", type=_positive_float, default=90.0, help="motor turns per table turn (default 90)")
+    k.add_argument("--baud", type=int, default=9600, help="serial baud rate (default 9600)")
+    k.add_argument("--device-name", default=None, help="party mode: the controller's one-letter DN")
+    k.add_argument("--home-switch", action="store_true", help="the table has a home switch on input 1 (real tables)")
+    k.add_argument("--settle", type=int, default=3, metavar="N", help="frames discarded before each image (default 3)")
+    k.add_argument("--average", type=int, default=1, metavar="N", help="frames averaged into each image (default 1)")
+    k.add_argument("--sim-size", default="640x480", metavar="WxH", help="simulated camera image size (default 640x480)")
+    k.add_argument("--quiet", action="store_true")
+    # TODO(lead): --view (stream the progressive hull to organlab's live viewer, issue 10): pass
+    # on_view=lambda i, angle, image: ... to run_capture once LiveView.add_view is in main.
+
+
 def _bars(quiet):
     from ._progress import NullProgress, ProgressBar
 
@@ -133,6 +174,8 @@ def _reconstruct(a):
         hull=a.hull,
         color_threshold=a.color_threshold,
         tolerance=a.tolerance,
+        calibration=a.calibration,
+        recalibrate=a.recalibrate,
         progress=_bars(a.quiet),
         max_memory=max_memory,
     )
@@ -176,23 +219,51 @@ def _pictures(rec, folder, voxel_size):
 
 
 def _calibrate(a):
-    from . import calibration as calib
+    from .calibration import calibrate
+    from .figures import check_figures
     from .session import load_session
 
     session = load_session(a.session)
+    out = session.root if a.in_place else a.out
+    if out.exists() and not out.is_dir():
+        raise OrganlabError(f"{out}: exists and is not a folder; give --out a folder")
     bar = _bars(a.quiet)("calibration")
-    result = calib.calibrate_session(session, progress=bar)
+    cal = calibrate(session, progress=bar)
     bar.close()
-    path = calib.write_calibration(session, result)
-    figs = calib.check_figures(session, result, a.figures or session.root / "calibration_check")
-    cam = result["camera"]
+    out.mkdir(parents=True, exist_ok=True)
+    path = cal.save(out / "calibration.json")
+    figs = check_figures(session, cal, a.figures or out / "calibration_check")
     print(f"organlab calibrate: {session.name} -> {path}")
-    rms = "given in session.json" if cam.get("rms_px") is None else f"RMS {cam['rms_px']:.3f} px"
-    print(f"  intrinsics {rms}, fx {cam['K'][0][0]:.2f}, fy {cam['K'][1][1]:.2f}, "
-          f"cc ({cam['K'][0][2]:.2f}, {cam['K'][1][2]:.2f}), kc {[round(k, 5) for k in cam['dist']]}")
-    if result.get("turntable"):
-        print(f"  turntable RMS {result['turntable']['rms_px']:.3f} px")
+    for line in cal.summary():
+        print(f"  {line}")
+    for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
+        for name, why in (fit.rejected.items() if fit is not None else ()):
+            print(f"  {what} image {name} not used: {why}")
     print(f"  {len(figs)} check figures in {Path(figs[0]).parent if figs else '-'}")
+    return 0
+
+
+def _capture(a):
+    from .capture import run_capture
+
+    drive = {"steps_per_rev": a.steps_per_rev, "microsteps": a.microsteps, "gear_ratio": a.gear_ratio}
+    if a.turntable != "sim":
+        drive.update(baudrate=a.baud, device_name=a.device_name, home_switch=a.home_switch)
+    try:
+        w, h = (int(v) for v in a.sim_size.lower().split("x"))
+    except ValueError:
+        raise OrganlabError(f"--sim-size must be WIDTHxHEIGHT, e.g. 640x480, got {a.sim_size!r}") from None
+    sim = {k: drive[k] for k in ("steps_per_rev", "microsteps", "gear_ratio")}
+    sim["time_scale"] = 10.0  # simulated moves 10x faster than the real table
+    bar = _bars(a.quiet)("capture")
+    path = run_capture(
+        a.out, turntable=a.turntable, camera=a.camera, step_deg=a.step, n_background=a.background,
+        n_intrinsic=a.intrinsics, board=not a.no_board, intrinsics_file=a.camera_file, drive=drive,
+        audit_limit_deg=a.audit_limit, stop_on_flag=not a.no_stop_on_flag, settle_frames=a.settle,
+        average=a.average, sim_options=dict(sim, image_size=(w, h)), progress=bar,
+    )
+    bar.close()
+    print(f"organlab capture: {path} complete; next: organlab reconstruct {path} --out DIR")
     return 0
 
 
@@ -208,7 +279,7 @@ def main(argv=None):
         args, handler = argv[1:], _synth
     else:
         args = _parser().parse_args(argv)
-        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "init": _init}[args.command]
+        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "init": _init}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

@@ -1,4 +1,4 @@
-"""Pictures of results: an off-screen rendering of a mesh (pyvista, EGL).
+"""Pictures of results: an off-screen rendering of a mesh (pyvista, EGL), calibration check figures.
 
 pyvista is imported inside the function, so ``import organlab`` stays fast.
 Off-screen rendering goes through EGL: no X server is needed.
@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["agreement_chart", "agreement_overlay", "mesh_snapshot"]
+from .errors import OrganlabError
+
+__all__ = ["mesh_snapshot", "check_figures", "agreement_chart", "agreement_overlay"]
 
 
 def mesh_snapshot(mesh, path, *, window_size=(800, 600), title=None, elevation_deg=20.0, azimuth_deg=-60.0):
@@ -61,6 +63,164 @@ def mesh_snapshot(mesh, path, *, window_size=(800, 600), title=None, elevation_d
     p.screenshot(str(path))
     p.close()
     return path
+
+
+# ========================================================= calibration check figures
+_GREEN = (40, 220, 40)
+_RED = (255, 60, 60)
+_YELLOW = (255, 220, 0)
+_CYAN = (0, 220, 255)
+
+
+def _pts(uv, scale):
+    return [(int(round(u * scale * 16)), int(round(v * scale * 16))) for u, v in uv if np.isfinite(u) and np.isfinite(v)]
+
+
+def _draw(img, detected, reprojected, scale, lines, extra=None):
+    import cv2
+
+    out = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) if scale != 1 else img.copy()
+    if out.ndim == 2:
+        out = cv2.cvtColor(out, cv2.COLOR_GRAY2RGB)
+    if extra is not None:
+        extra(out)
+    if reprojected is not None:
+        for p in _pts(reprojected, scale):
+            cv2.circle(out, p, 5 * 16, _RED, 1, cv2.LINE_AA, shift=4)
+    if detected is not None:
+        for (u, v) in _pts(detected, scale):
+            cv2.drawMarker(out, (u // 16, v // 16), _GREEN, cv2.MARKER_CROSS, 9, 1, cv2.LINE_AA)
+    y = 18
+    for text in lines:
+        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+        cv2.rectangle(out, (4, y - th - 3), (12 + tw, y + base), (0, 0, 0), -1)
+        cv2.putText(out, text, (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        y += 20
+    return out
+
+
+def _save(path, rgb):
+    import cv2
+
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OrganlabError(f"{path}: could not encode the figure")
+    Path(path).write_bytes(buf.tobytes())
+    return Path(path)
+
+
+def _fig_name(name):
+    stem = str(name).replace("\\", "/").rsplit(".", 1)[0]
+    return stem.replace("/", "_") + ".png"
+
+
+def check_figures(session, calibration, out_dir):
+    """Draw detected (+, green) and reprojected (o, red) corners over every calibration image.
+
+    As the thesis's Figure 1: a good calibration puts every circle on its
+    cross.  Turntable images also show the table axis (yellow, from the
+    board surface up) and the circle that the board's first corner sweeps as
+    the table turns (cyan): every image's first corner must lie on it.
+
+    Parameters
+    ----------
+    session : Session
+    calibration : organlab.calibration.Calibration
+        The detected corners it keeps per image are drawn as they are; an
+        image without them (rejected, or an older file) is detected again.
+    out_dir : str or Path
+        Created when missing; one PNG per calibration image.
+
+    Returns
+    -------
+    list of Path
+    """
+    from .calibration import Calibration, board_points
+    from .errors import CalibrationError
+
+    if not isinstance(calibration, Calibration):
+        raise TypeError(f"calibration must be an organlab Calibration, got {type(calibration).__name__}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    intr, tt = calibration.intrinsics, calibration.turntable
+    pattern = session.pattern
+    if pattern is None and ((intr is not None and session.intrinsic_images) or tt is not None):
+        raise CalibrationError(
+            f"{session.json_path}: pattern is required to draw the calibration figures: "
+            "{'inner_corners': [cols, rows], 'square_size': mm}"
+        )
+    obj = None if pattern is None else board_points(pattern)
+    scale = 2 if calibration.camera.width < 1000 else 1
+    paths = []
+    if intr is not None:
+        for pth in session.intrinsic_images:
+            name = session.relpath(pth)
+            img = session.read(pth, key="calibration.intrinsic_images", grey=False)
+            paths.append(_save(out_dir / ("intrinsic_" + _fig_name(name)), _intrinsic_figure(img, name, intr, obj, pattern, scale)))
+    if tt is not None:
+        for pth, angle in session.turntable_images:
+            name = session.relpath(pth)
+            img = session.read(pth, key="calibration.turntable_images", grey=False)
+            fig = _turntable_figure(img, name, angle, tt, obj, pattern, scale)
+            paths.append(_save(out_dir / ("turntable_" + _fig_name(name)), fig))
+    return paths
+
+
+def _intrinsic_figure(img, name, intr, obj, pattern, scale):
+    from .calibration import detect_board
+
+    det = intr.corners.get(name)
+    if det is None:
+        det = detect_board(img, pattern)
+    rep = None
+    lines = [f"intrinsic {name}"]
+    if name in intr.extrinsics:
+        import cv2
+
+        rvec, tvec = intr.extrinsics[name]
+        rep = intr.camera.with_pose(cv2.Rodrigues(np.asarray(rvec, float))[0], tvec).project(obj)
+        lines.append(f"RMS {intr.per_image_rms[name]:.3f} px  (all images {intr.rms_px:.3f} px)")
+    if name in intr.rejected:
+        lines.append(f"REJECTED: {intr.rejected[name]}")
+    lines.append("+ detected   o reprojected")
+    return _draw(img, det, rep, scale, lines)
+
+
+def _turntable_figure(img, name, angle, tt, obj, pattern, scale):
+    import cv2
+
+    from .calibration import detect_board
+
+    off = np.array(list(np.asarray(tt.board_offset_mm, float)) + [0.0])
+    radius = float(np.hypot(*off[:2]))
+    ts = np.linspace(0, 2 * np.pi, 181)
+    circle = np.stack([radius * np.cos(ts), radius * np.sin(ts), np.zeros_like(ts)], axis=1)
+    axis_pts = np.array([[0.0, 0.0, z] for z in np.linspace(0.0, float(np.ptp(obj[:, 0])), 11)])
+    cam = tt.camera.at_table_angle(angle)
+    det = tt.corners.get(name)
+    if det is None:
+        det = detect_board(img, pattern, require_orientation=True)
+    rep, circ, ax = cam.project(obj + off), cam.project(circle), cam.project(axis_pts)
+
+    def extra(out):
+        poly = np.array(_pts(circ, scale), np.int32)
+        if len(poly) > 1:
+            cv2.polylines(out, [poly], False, _CYAN, 1, cv2.LINE_AA, shift=4)
+        axp = np.array(_pts(ax, scale), np.int32)
+        if len(axp) > 1:
+            cv2.polylines(out, [axp], False, _YELLOW, 2, cv2.LINE_AA, shift=4)
+        o = _pts(rep[:1], scale)
+        if o:
+            cv2.circle(out, o[0], 9 * 16, _CYAN, 2, cv2.LINE_AA, shift=4)
+
+    lines = [f"turntable {name}  angle {angle:g} deg"]
+    if name in tt.per_image_rms:
+        lines.append(f"RMS {tt.per_image_rms[name]:.3f} px  (joint fit {tt.rms_px:.3f} px)"
+                     + ("  FLAGGED: board moved?" if name in tt.flagged else ""))
+    if name in tt.rejected:
+        lines.append(f"REJECTED: {tt.rejected[name]}")
+    lines.append("+ detected  o reprojected  | axis  O sweep of first corner")
+    return _draw(img, det, rep, scale, lines, extra)
 
 
 def agreement_chart(report, path):

@@ -62,6 +62,17 @@ class VoxelGrid:
         shape = np.maximum(1, np.ceil((hi - lo) / voxel_size - 1e-9)).astype(int)
         return cls(tuple(lo + voxel_size / 2), voxel_size, tuple(shape))
 
+    @classmethod
+    def from_session(cls, session, voxel_size=1.0):
+        """Grid filling the session's region of interest (``roi`` in ``session.json``).
+
+        Parameters
+        ----------
+        session : organlab.session.Session
+        voxel_size : float, mm
+        """
+        return cls.from_roi(session.roi_min, session.roi_max, voxel_size)
+
     @property
     def n_voxels(self):
         return int(np.prod(self.shape))

@@ -1,9 +1,18 @@
 """The whole pipeline: a session folder in, a measured mesh out.
 
-:func:`reconstruct` chains the stage functions (calibration when needed,
-silhouettes, carving, optional colouring, surface) and returns a
-:class:`Reconstruction`; :func:`write_outputs` writes the files that
-``session-format.md`` specifies.  The CLI only calls these two.
+:func:`reconstruct` is exactly the stage functions in sequence (what a notebook
+writes by hand), plus progress bars and timings::
+
+    cal, how = calibration_for(session)        # organlab.calibration
+    cameras = cal.cameras(session)
+    sils = silhouettes(session)                # organlab.silhouette
+    grid = VoxelGrid.from_session(session, voxel_size=1.0)
+    field = hull_field(sils, cameras, grid)    # organlab.carving
+    mesh = mesh_from_field(field, grid)        # organlab.surface
+    measure(mesh)
+
+:func:`write_outputs` writes the files that ``docs/session-format.md``
+specifies.  The CLI only calls these two.
 """
 
 from __future__ import annotations
@@ -16,61 +25,36 @@ import numpy as np
 
 from . import __version__
 from ._progress import NullProgress
-from .camera import Camera
 from .errors import SessionError
 from .grid import VoxelGrid
 from .session import Session, load_session, write_json
 
-__all__ = ["Reconstruction", "session_cameras", "reconstruct", "write_outputs", "HULL_METHODS", "METHODS"]
+__all__ = ["Reconstruction", "session_cameras", "reconstruct", "write_outputs", "summary_table", "HULL_METHODS", "METHODS"]
 
 HULL_METHODS = ("subvoxel", "thesis")
 METHODS = ("hull", "coloring", "space_carving")
 
 
-def _needs_calibration(session):
-    have_intr = session.camera is not None or session.calibration is not None
-    need_tt = any(v.pose is None for v in session.views)
-    have_tt = bool(session.calibration and session.calibration.get("turntable"))
-    return not have_intr or (need_tt and not have_tt)
-
-
 def session_cameras(session, calibration=None):
     """The camera of every view of a session.
 
-    Intrinsics come from ``session.json``'s ``camera`` when given, otherwise
-    from the calibration; a view's pose is its given ``pose``, otherwise the
-    turntable calibration's ``R_cam @ Rz(angle)``, ``t_cam``.
-
     Parameters
     ----------
-    session : Session
-    calibration : dict, optional
-        Contents of ``calibration.json`` (default: the session's own).
+    session : Session or str or Path
+    calibration : Calibration or str or Path, optional
+        Default: the session's own (given in ``session.json``, its matching
+        ``calibration.json``, or computed now from its board images: see
+        :func:`organlab.calibration.calibration_for`).
 
     Returns
     -------
     list of Camera, one per view
     """
-    calibration = calibration if calibration is not None else session.calibration
-    intr = session.given_camera()
-    if intr is None and calibration is not None:
-        c = calibration["camera"]
-        intr = Camera(c["K"], c["dist"], image_size=session.image_size)
-    if intr is None:
-        raise SessionError(f"{session.json_path}: camera: no intrinsics; run 'organlab calibrate {session.root}'")
-    tt = (calibration or {}).get("turntable")
-    cams = []
-    for i, v in enumerate(session.views):
-        if v.pose is not None:
-            cams.append(intr.with_pose(*v.pose))
-        elif tt is not None:
-            cams.append(intr.with_pose(tt["R_cam"], tt["t_cam"]).at_table_angle(v.angle_deg))
-        else:
-            raise SessionError(
-                f"{session.json_path}: views[{i}].pose: no pose and no turntable calibration; "
-                f"run 'organlab calibrate {session.root}'"
-            )
-    return cams
+    from .calibration import calibration_for
+
+    if not isinstance(session, Session):
+        session = load_session(session)
+    return calibration_for(session, calibration=calibration)[0].cameras(session)
 
 
 @dataclass
@@ -92,8 +76,8 @@ class Reconstruction:
         Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``).
     colors : (nx, ny, nz, 3) uint8 or None
         Voxel colours (``method='coloring'``).
-    calibration : dict or None
-        The calibration used (contents of ``calibration.json``), if any.
+    calibration : organlab.calibration.Calibration
+        The calibration used.
     """
 
     session: Session
@@ -105,7 +89,83 @@ class Reconstruction:
     report: dict
     field: np.ndarray | None = None
     colors: np.ndarray | None = None
-    calibration: dict | None = None
+    calibration: object = None
+
+
+class _Stages:
+    """Per-stage progress bars and timings."""
+
+    def __init__(self, progress):
+        self.progress = progress or (lambda stage: NullProgress())
+        self.timings = {}
+
+    def run(self, name, fn, *args, **kwargs):
+        """``fn(*args, progress=bar, **kwargs)``, timed as stage ``name``."""
+        bar = self.progress(name)
+        t0 = time.perf_counter()
+        out = fn(*args, progress=bar, **kwargs)
+        self.timings[name] = time.perf_counter() - t0
+        bar.close()
+        return out
+
+
+def _check_options(session, voxel_size, threshold, method, hull):
+    from .preflight import check_voxel_size
+
+    check_voxel_size(voxel_size)  # finite and > 0
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if hull not in HULL_METHODS:
+        raise ValueError(f"hull must be one of {HULL_METHODS}, got {hull!r}")
+    if threshold is not None and not (np.isfinite(threshold) and threshold > 0):
+        raise SessionError(f"--threshold must be a finite number of grey levels > 0, got {threshold}")
+    if not session.views:
+        raise SessionError(f"{session.json_path}: views: the session has no views to reconstruct (calibration-only session)")
+
+
+def _calibration_stage(stages, session, calibration, recalibrate):
+    """The calibration to use; timed (and a bar shown) only when one is computed."""
+    from .calibration import calibration_for
+
+    bar = None
+
+    def progress(done, total):
+        nonlocal bar
+        bar = bar or stages.progress("calibration")
+        bar(done, total)
+
+    t0 = time.perf_counter()
+    cal, how = calibration_for(session, calibration=calibration, recalibrate=recalibrate, progress=progress)
+    if how == "computed" or how.startswith("recomputed"):
+        stages.timings["calibration"] = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+    return cal, how
+
+
+def _carve(sils, cameras, grid, *, hull, tolerance, progress):
+    from .carving import carve, hull_field
+
+    if hull == "thesis":
+        occupancy, field = carve(sils, cameras, grid, tolerance=tolerance), None
+    else:
+        field = hull_field(sils, cameras, grid, tolerance=tolerance, progress=progress)
+        occupancy = field >= 0.5
+    progress(len(cameras), len(cameras))
+    return occupancy, field
+
+
+def _surface(occupancy, field, colors, colored, grid, *, progress):
+    from .surface import color_vertices, mesh_from_field
+
+    # after colouring, the surface is the coloured voxel model's: the hull field knows
+    # nothing of the voxels colouring carved, and setting them outside in the field
+    # moved the surface inward by up to a voxel wherever colouring carved a surface voxel
+    mesh = mesh_from_field(occupancy if (colors is not None or field is None) else field, grid)
+    if colors is not None:
+        mesh = color_vertices(mesh, colors, colored, grid)
+    progress(1, 1)
+    return mesh
 
 
 def reconstruct(
@@ -117,10 +177,14 @@ def reconstruct(
     hull="subvoxel",
     color_threshold=None,
     tolerance=0,
+    calibration=None,
+    recalibrate=False,
     progress=None,
     max_memory=None,
 ):
-    """Reconstruct a session: silhouettes, visual hull, (colouring), surface.
+    """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
+
+    Nothing is written, into the session or elsewhere: see :func:`write_outputs`.
 
     Parameters
     ----------
@@ -145,6 +209,12 @@ def reconstruct(
         Photo-consistency threshold (grey levels of standard deviation).
     tolerance : int
         Views allowed to disagree before a voxel is carved.
+    calibration : Calibration or str or Path, optional
+        Use this calibration (checked against the session) instead of the
+        session's own; see :func:`organlab.calibration.calibration_for`.
+    recalibrate : bool
+        Calibrate from the board images even when the session's
+        ``calibration.json`` matches it.
     progress : callable(stage) -> bar, optional
         Factory of per-stage progress bars (``bar(done, total)``, ``bar.close()``).
     max_memory : int, optional
@@ -156,115 +226,47 @@ def reconstruct(
     -------
     Reconstruction
     """
+    from .silhouette import silhouettes
+
     if not isinstance(session, Session):
         session = load_session(session)
-    from .preflight import check_grid_memory, check_voxel_size, check_writable
+    _check_options(session, voxel_size, threshold, method, hull)
+    stages = _Stages(progress)
 
-    voxel_size = check_voxel_size(voxel_size)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if hull not in HULL_METHODS:
-        raise ValueError(f"hull must be one of {HULL_METHODS}, got {hull!r}")
-    if threshold is not None and not (np.isfinite(threshold) and threshold > 0):
-        raise SessionError(f"--threshold must be a finite number of grey levels > 0, got {threshold}")
-    if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
-        raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")
-    if not session.views:
-        raise SessionError(f"{session.json_path}: views: the session has no views to reconstruct (calibration-only session)")
-    check_grid_memory(session.roi_min, session.roi_max, voxel_size, max_memory=max_memory, method=method,
-                      tolerance=tolerance if isinstance(tolerance, int) else 0, where=str(session.json_path))
-    progress = progress or (lambda stage: NullProgress())
-    timings = {}
-
-    # --- calibration
-    calibration = session.calibration
-    if _needs_calibration(session):
-        from . import calibration as calib
-
-        check_writable(session.root, what="calibration.json")
-        bar = progress("calibration")
-        t0 = time.perf_counter()
-        calibration = calib.calibrate_session(session, progress=bar)
-        try:
-            calib.write_calibration(session, calibration)
-        except OSError as e:
-            raise SessionError(f"{session.calibration_path}: cannot write the calibration ({e.strerror or e}); "
-                               f"run 'organlab reconstruct' on a writable copy of the session") from None
-        timings["calibration"] = time.perf_counter() - t0
-        bar.close()
-    cameras = session_cameras(session, calibration)
-
-    # --- silhouettes
-    from .silhouette import session_silhouettes
-
-    bar = progress("silhouettes")
-    t0 = time.perf_counter()
-    # read once: colouring needs the same images
-    images = [session.read(v.image, key=f"views[{i}].image") for i, v in enumerate(session.views)]
-    sils = session_silhouettes(session, images=images, threshold=threshold, progress=bar)
-    timings["silhouettes"] = time.perf_counter() - t0
-    bar.close()
-
-    # --- carving
-    from . import carving
-
-    grid = VoxelGrid.from_roi(session.roi_min, session.roi_max, voxel_size)
-    bar = progress("carving")
-    t0 = time.perf_counter()
-    field_ = None
-    if hull == "thesis":
-        occupancy = carving.carve([s.mask for s in sils], cameras, grid, tolerance=tolerance)
-    else:
-        field_ = carving.hull_field([s.coverage for s in sils], cameras, grid, tolerance=tolerance, progress=bar)
-        occupancy = field_ >= 0.5
-    bar(len(cameras), len(cameras))
-    timings["carving"] = time.perf_counter() - t0
-    bar.close()
+    _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory)
+    cal, how = _calibration_stage(stages, session, calibration, recalibrate)
+    cameras = cal.cameras(session)
+    images = session.images()  # read once: colouring needs the same images
+    sils = stages.run("silhouettes", silhouettes, session, images=images, threshold=threshold)
+    grid = VoxelGrid.from_session(session, voxel_size)
+    occupancy, field = stages.run("carving", _carve, sils, cameras, grid, hull=hull, tolerance=tolerance)
     if not occupancy.any():
         raise SessionError(
             f"{session.json_path}: carving left no voxel: the silhouettes do not agree with the cameras "
             "(check the calibration, the roi and the threshold)"
         )
-
-    # --- colouring
-    colors = None
+    colors = colored = None
     if method != "hull":
-        from . import coloring
-
-        bar = progress("coloring")
-        t0 = time.perf_counter()
-        kw = {} if color_threshold is None else {"threshold": color_threshold}
-        kind = "voxel_coloring" if method == "coloring" else "space_carving"
-        res = coloring.color_voxels(
-            images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=bar, **kw
-        )
+        res = stages.run("coloring", _color, images, cameras, occupancy, grid, sils, method, color_threshold)
         occupancy, colors, colored = res.occupancy, res.colors, res.colored
-        timings["coloring"] = time.perf_counter() - t0
-        bar.close()
-
-    # --- surface
-    from .surface import Mesh, mesh_from_volume
-
-    bar = progress("surface")
-    t0 = time.perf_counter()
-    # after colouring, the surface is the coloured voxel model's: the hull field knows
-    # nothing of the voxels colouring carved, and setting them outside in the field
-    # moved the surface inward by up to a voxel wherever colouring carved a surface voxel
-    surface_of = occupancy if (colors is not None or field_ is None) else field_
-    mesh = mesh_from_volume(surface_of, grid, level=0.5)
-    if colors is not None:
-        mesh = Mesh(mesh.vertices, mesh.faces, _vertex_colors(mesh.vertices, colored, colors, grid))
-    bar(1, 1)
-    timings["surface"] = time.perf_counter() - t0
-    bar.close()
-
-    report = _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings, method, hull)
-    _add_agreement(report, session, grid, mesh, cameras, sils)
-    return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field_, colors, calibration)
+    mesh = stages.run("surface", _surface, occupancy, field, colors, colored, grid)
+    report = _report(session, grid, occupancy, mesh, cameras, cal, how, sils, stages.timings, method, hull)
+    _add_checks(report, session, grid, mesh, cameras, sils, cal)
+    return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal)
 
 
-def _add_agreement(report, session, grid, mesh, cameras, sils):
-    """View agreement (organlab.agreement) into the report: per view, worst views, warnings."""
+def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory):
+    """Before the long work: the grid's memory (organlab.preflight), a finite colour threshold."""
+    from .preflight import check_grid_memory
+
+    if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
+        raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")
+    check_grid_memory(session.roi_min, session.roi_max, voxel_size, max_memory=max_memory, method=method,
+                      tolerance=tolerance if isinstance(tolerance, int) else 0, where=str(session.json_path))
+
+
+def _add_checks(report, session, grid, mesh, cameras, sils, cal):
+    """Trust checks into the report (issue 15): view agreement, what loading corrected."""
     from .agreement import view_agreement
 
     names = [session.relpath(v.image) for v in session.views]
@@ -274,41 +276,39 @@ def _add_agreement(report, session, grid, mesh, cameras, sils):
     report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
     report.setdefault("warnings", []).extend(agr.warnings)
     if getattr(session, "notes", ()):
-        report["notes"] = list(session.notes)  # what loading corrected (re-orthonormalised rotations)
+        report["notes"] = list(session.notes)  # re-orthonormalised rotations
 
 
-def _vertex_colors(vertices, colored, colors, grid):
-    """Colour of the nearest coloured voxel of each vertex."""
-    from scipy import ndimage
+def _color(images, cameras, occupancy, grid, sils, method, color_threshold, *, progress):
+    from .coloring import color_voxels
 
-    has = np.asarray(colored, dtype=bool)
-    if not has.any():
-        return np.full((len(vertices), 3), 128, np.uint8)
-    _, idx = ndimage.distance_transform_edt(~has, return_indices=True)
-    ijk = np.rint((vertices - np.asarray(grid.origin)) / grid.voxel_size).astype(int)
-    ijk = np.clip(ijk, 0, np.asarray(grid.shape) - 1)
-    src = idx[:, ijk[:, 0], ijk[:, 1], ijk[:, 2]]
-    return colors[src[0], src[1], src[2]]
+    kw = {} if color_threshold is None else {"threshold": color_threshold}
+    kind = "voxel_coloring" if method == "coloring" else "space_carving"
+    return color_voxels(images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=progress, **kw)
 
 
-def _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings, method, hull):
+def _report(session, grid, occupancy, mesh, cameras, cal, how, sils, timings, method, hull):
+    from .surface import measure
+
     volume = grid.volume_of(occupancy)
+    m = measure(mesh)
     cam0 = cameras[0]
     camera = {"K": cam0.K.tolist(), "dist": cam0.dist.tolist(), "image_size": list(cam0.image_size)}
-    if session.camera is None and calibration is not None and "rms_px" in calibration.get("camera", {}):
-        camera["rms_px"] = calibration["camera"]["rms_px"]
+    if cal.rms_px is not None:
+        camera["rms_px"] = cal.rms_px
     r = {
         "organlab_version": __version__,
         "session": session.name,
         "method": method,
         "hull": hull,
         "volume_mm3": volume,
-        "mesh_volume_mm3": mesh.volume,
-        "mesh_area_mm2": mesh.area,
-        "watertight": bool(mesh.is_watertight),
+        "mesh_volume_mm3": m["volume_mm3"],
+        "mesh_area_mm2": m["area_mm2"],
+        "watertight": m["watertight"],
         "voxel_size_mm": grid.voxel_size,
         "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape), "occupied_voxels": int(occupancy.sum())},
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
+        "calibration": {"source": how, "rms_px": cal.rms_px, "turntable_rms_px": cal.turntable_rms_px},
         "views": [
             {"image": session.relpath(v.image), "angle_deg": v.angle_deg, "R": c.R.tolist(), "t": c.t.tolist(),
              "silhouette_threshold": s.threshold, "silhouette_source": s.source}
@@ -316,18 +316,21 @@ def _report(session, grid, occupancy, mesh, cameras, calibration, sils, timings,
         ],
         "camera": camera,
     }
-    if calibration is not None and calibration.get("turntable") and "rms_px" in calibration["turntable"]:
-        r["turntable_rms_px"] = calibration["turntable"]["rms_px"]
+    if cal.turntable_rms_px is not None:
+        r["turntable_rms_px"] = cal.turntable_rms_px
     ref = session.reference.get("volume_mm3")
     if ref:
         r["reference"] = dict(session.reference)
         r["volume_error_pct"] = 100.0 * (volume - ref) / ref
-        r["mesh_volume_error_pct"] = 100.0 * (mesh.volume - ref) / ref
+        r["mesh_volume_error_pct"] = 100.0 * (m["volume_mm3"] - ref) / ref
     return r
 
 
 def write_outputs(rec, out_dir, *, atomic=True):
-    """Write ``report.json``, ``voxels.npz``, ``mesh.ply`` and ``mesh.stl``.
+    """Write ``report.json``, ``voxels.npz``, ``mesh.ply``, ``mesh.stl`` (and ``calibration.json``).
+
+    ``calibration.json`` is the calibration used, when it was fitted from
+    board images (not when ``session.json`` gave the camera and every pose).
 
     Parameters
     ----------
@@ -370,6 +373,9 @@ def write_outputs(rec, out_dir, *, atomic=True):
     write_ply(paths["ply"], rec.mesh)
     write_stl(paths["stl"], rec.mesh)
     write_json(paths["report"], rec.report)
+    cal = rec.calibration
+    if cal is not None and (cal.intrinsics is not None or cal.turntable is not None):
+        paths["calibration"] = cal.save(out / "calibration.json")
     return paths
 
 
@@ -383,6 +389,9 @@ def summary_table(report):
         rows.append(("reference", f"{ref / 1000:.2f} cm3"))
     rows.append(("mesh area", f"{report['mesh_area_mm2'] / 100:.2f} cm2"))
     rows.append(("watertight", "yes" if report["watertight"] else "NO"))
+    source = report.get("calibration", {}).get("source")
+    if source:
+        rows.append(("calibration", source))
     if "rms_px" in report["camera"]:
         rows.append(("calib. RMS", f"{report['camera']['rms_px']:.3f} px"))
     if "turntable_rms_px" in report:

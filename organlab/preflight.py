@@ -36,7 +36,6 @@ __all__ = [
     "check_grid_memory",
     "check_output_dir",
     "check_voxel_size",
-    "check_writable",
     "available_memory",
     "parse_memory",
 ]
@@ -44,7 +43,8 @@ __all__ = [
 #: Files organlab writes into an output folder; a folder holding only these
 #: (or empty) may be replaced by a new run.
 OUTPUT_NAMES = frozenset(
-    {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "mesh.png", "agreement.png", "worst_view.png"}
+    {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "calibration.json", "mesh.png", "agreement.png",
+     "worst_view.png"}
 )
 
 
@@ -160,22 +160,6 @@ def check_grid_memory(roi_min, roi_max, voxel_size, *, max_memory=None, method="
         f"{where}: roi: a {shape} grid at {voxel_size:g} mm needs about {_fmt_bytes(need)}, more than "
         f"{_fmt_bytes(limit)} ({src}); use --voxel-size {vs:.3g} or more, a smaller roi, or raise --max-memory"
     )
-
-
-def check_writable(folder, *, what):
-    """Raise a one-line SessionError when ``what`` cannot be written into ``folder``.
-
-    Tried by creating and removing a temporary file there (``os.access``
-    says yes to root on a read-only folder).
-    """
-    try:
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".organlab-check-"):
-            pass
-    except OSError as e:
-        raise SessionError(
-            f"{Path(folder) / what}: cannot be written ({e.strerror or e}): the session folder is read-only; "
-            "work on a writable copy of the session"
-        ) from None
 
 
 def _is_output_folder(path):

@@ -1,6 +1,6 @@
 """Loading and validating session folders (``organlab.session/1``).
 
-The format is specified in ``shared/specs/session-format.md``.  A session is
+The format is specified in ``docs/session-format.md``.  A session is
 checked when it is loaded, so that a bad one fails at once with a single
 clear message (:class:`~organlab.errors.SessionError`) naming the file and
 the key, instead of half-way through a reconstruction.
@@ -99,6 +99,15 @@ class Session:
     def read(self, path, *, key="image", grey=False):
         """Read one of the session's images, checking it exists and has the session's size."""
         return read_image(path, size=self.image_size, key=key, grey=grey, session=self)
+
+    def images(self, *, grey=False):
+        """The views' images, read and checked, in view order.
+
+        Returns
+        -------
+        list of (H, W, 3) uint8 RGB (or (H, W) uint8 with ``grey=True``)
+        """
+        return [self.read(v.image, key=f"views[{i}].image", grey=grey) for i, v in enumerate(self.views)]
 
     def given_camera(self):
         """The intrinsics given in ``session.json`` as a :class:`Camera`, or None."""
@@ -202,6 +211,38 @@ def load_session(path, *, check_images=True):
     SessionError
         With one line naming the file and key at fault.
     """
+    root, sj, raw = _read_session_json(path)
+    size = _image_size(raw, sj)
+    roi_min, roi_max = _roi(raw, sj)
+    pattern = _pattern(raw, sj)
+    intrinsic, turntable, background = _board_and_background_images(raw, root, sj)
+    camera = _camera(raw, size, sj)
+    calibration = _calibration_json(root / "calibration.json")
+    views, notes = _views(raw, root, sj)
+    _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration)
+    session = Session(
+        root=root,
+        name=str(raw.get("name", root.name)),
+        image_size=size,
+        roi_min=roi_min,
+        roi_max=roi_max,
+        views=tuple(views),
+        pattern=pattern,
+        intrinsic_images=intrinsic,
+        turntable_images=tuple(turntable),
+        background_images=background,
+        camera=camera,
+        reference=_reference(raw, sj),
+        calibration=calibration,
+        raw=raw,
+        notes=tuple(notes),
+    )
+    if check_images:
+        _check_images(session)
+    return session
+
+
+def _read_session_json(path):
     root = Path(path)
     if root.name == "session.json":
         root = root.parent
@@ -219,11 +260,14 @@ def load_session(path, *, check_images=True):
         raise SessionError(f"{sj}: not a UTF-8 text file") from None
     if not isinstance(raw, dict):
         _fail(sj, "(top level)", "must be a JSON object")
-
     if raw.get("format") != FORMAT:
         _fail(sj, "format", f"must be exactly '{FORMAT}', got {raw.get('format')!r}")
     if raw.get("units") != "mm":
         _fail(sj, "units", f"must be 'mm', got {raw.get('units')!r}")
+    return root, sj, raw
+
+
+def _image_size(raw, sj):
     size = raw.get("image_size")
     if (
         not isinstance(size, list)
@@ -231,9 +275,10 @@ def load_session(path, *, check_images=True):
         or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
     ):
         _fail(sj, "image_size", f"must be [width, height] in pixels (positive integers), got {size!r}")
-    size = tuple(size)
+    return tuple(size)
 
-    # --- roi
+
+def _roi(raw, sj):
     roi = raw.get("roi")
     if not isinstance(roi, dict) or "min" not in roi or "max" not in roi:
         _fail(sj, "roi", "must be {'min': [x, y, z], 'max': [x, y, z]} in mm")
@@ -242,24 +287,27 @@ def load_session(path, *, check_images=True):
     bad = [("xyz"[i]) for i in range(3) if roi_min[i] >= roi_max[i]]
     if bad:
         _fail(sj, "roi", f"min must be < max on every axis; not on {', '.join(bad)} ({roi_min.tolist()} vs {roi_max.tolist()})")
+    return roi_min, roi_max
 
-    # --- pattern
-    pattern = None
-    if raw.get("pattern") is not None:
-        p = raw["pattern"]
-        if not isinstance(p, dict):
-            _fail(sj, "pattern", "must be an object")
-        if p.get("type", "checkerboard") != "checkerboard":
-            _fail(sj, "pattern.type", f"only 'checkerboard' is supported, got {p.get('type')!r}")
-        ic = p.get("inner_corners")
-        if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) and v >= 2 for v in ic)):
-            _fail(sj, "pattern.inner_corners", f"must be [columns, rows] of inner corners (integers >= 2), got {ic!r}")
-        sq = p.get("square_size")
-        if not (isinstance(sq, (int, float)) and not isinstance(sq, bool) and sq > 0):
-            _fail(sj, "pattern.square_size", f"must be a positive number of mm, got {sq!r}")
-        pattern = Pattern(tuple(ic), float(sq))
 
-    # --- calibration image lists
+def _pattern(raw, sj):
+    if raw.get("pattern") is None:
+        return None
+    p = raw["pattern"]
+    if not isinstance(p, dict):
+        _fail(sj, "pattern", "must be an object")
+    if p.get("type", "checkerboard") != "checkerboard":
+        _fail(sj, "pattern.type", f"only 'checkerboard' is supported, got {p.get('type')!r}")
+    ic = p.get("inner_corners")
+    if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) and v >= 2 for v in ic)):
+        _fail(sj, "pattern.inner_corners", f"must be [columns, rows] of inner corners (integers >= 2), got {ic!r}")
+    sq = p.get("square_size")
+    if not (isinstance(sq, (int, float)) and not isinstance(sq, bool) and sq > 0):
+        _fail(sj, "pattern.square_size", f"must be a positive number of mm, got {sq!r}")
+    return Pattern(tuple(ic), float(sq))
+
+
+def _board_and_background_images(raw, root, sj):
     cal = raw.get("calibration") or {}
     if not isinstance(cal, dict):
         _fail(sj, "calibration", "must be an object")
@@ -272,36 +320,43 @@ def load_session(path, *, check_images=True):
         image, a = _image_at_angle(item, f"calibration.turntable_images[{i}]", sj, "give the table angle of every turntable image")
         turntable.append((root / image, a))
     background = _image_list(raw.get("background_images", []), "background_images", root, sj)
+    return intrinsic, turntable, background
 
-    # --- camera
-    camera = None
-    if raw.get("camera") is not None:
-        c = raw["camera"]
-        if not isinstance(c, dict):
-            _fail(sj, "camera", "must be {'K': 3x3, 'dist': [k1, k2, p1, p2, k3]}")
-        K = _matrix(c.get("K"), (3, 3), sj, "camera.K")
-        dist = _matrix(c.get("dist", [0, 0, 0, 0, 0]), (5,), sj, "camera.dist")
-        try:
-            Camera(K, dist, image_size=size)
-        except ValueError as e:
-            _fail(sj, "camera", str(e))
-        camera = {"K": K, "dist": dist}
 
-    # --- calibration.json
-    calibration = None
-    cj = root / "calibration.json"
-    if cj.is_file():
-        try:
-            calibration = json.loads(cj.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise SessionError(f"{cj}: invalid JSON ({e}); delete it and run 'organlab calibrate' again") from None
-        if not isinstance(calibration, dict) or "camera" not in calibration:
-            raise SessionError(f"{cj}: has no 'camera'; delete it and run 'organlab calibrate' again")
-        for k in ("K", "dist"):
-            if k not in calibration["camera"]:
-                raise SessionError(f"{cj}: camera.{k} is missing; delete it and run 'organlab calibrate' again")
+def _camera(raw, size, sj):
+    if raw.get("camera") is None:
+        return None
+    c = raw["camera"]
+    if not isinstance(c, dict):
+        _fail(sj, "camera", "must be {'K': 3x3, 'dist': [k1, k2, p1, p2, k3]}")
+    K = _matrix(c.get("K"), (3, 3), sj, "camera.K")
+    dist = _matrix(c.get("dist", [0, 0, 0, 0, 0]), (5,), sj, "camera.dist")
+    try:
+        Camera(K, dist, image_size=size)
+    except ValueError as e:
+        _fail(sj, "camera", str(e))
+    return {"K": K, "dist": dist}
 
-    # --- views
+
+def _calibration_json(cj):
+    """The content of the session's calibration.json (checked in full where it is used), or None."""
+    if not cj.is_file():
+        return None
+    try:
+        calibration = json.loads(cj.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise SessionError(f"{cj}: invalid JSON ({e}); delete it and run 'organlab calibrate' again") from None
+    if not isinstance(calibration, dict) or "camera" not in calibration:
+        raise SessionError(f"{cj}: has no 'camera'; delete it and run 'organlab calibrate' again")
+    if not isinstance(calibration["camera"], dict):
+        raise SessionError(f"{cj}: camera must be an object with K and dist; delete it and run 'organlab calibrate' again")
+    for k in ("K", "dist"):
+        if k not in calibration["camera"]:
+            raise SessionError(f"{cj}: camera.{k} is missing; delete it and run 'organlab calibrate' again")
+    return calibration
+
+
+def _views(raw, root, sj):
     views_raw = raw.get("views")
     if not isinstance(views_raw, list):
         _fail(sj, "views", "is required: a list of {'image': path, 'angle_deg': number} (may be empty)")
@@ -331,8 +386,11 @@ def load_session(path, *, check_images=True):
                 _fail(sj, key + ".mask", "must be an image path")
             mask = root / v["mask"]
         views.append(View(root / image, a, pose, mask))
+    return views, notes
 
-    # --- what each view needs
+
+def _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration):
+    """What each view needs: intrinsics, a pose or a turntable, a mask or background frames."""
     have_intrinsics = camera is not None or bool(intrinsic) or calibration is not None
     have_turntable = bool(turntable) or bool(calibration and calibration.get("turntable"))
     if views and not have_intrinsics:
@@ -351,32 +409,14 @@ def load_session(path, *, check_images=True):
     if any(v.mask is None for v in views) and not background:
         _fail(sj, "background_images", "views without 'mask' need background frames for the silhouettes")
 
+
+def _reference(raw, sj):
     reference = raw.get("reference") or {}
     if not isinstance(reference, dict):
         _fail(sj, "reference", "must be an object, e.g. {'volume_mm3': 180000}")
     if "volume_mm3" in reference and not (isinstance(reference["volume_mm3"], (int, float)) and reference["volume_mm3"] > 0):
         _fail(sj, "reference.volume_mm3", "must be a positive number")
-
-    session = Session(
-        root=root,
-        name=str(raw.get("name", root.name)),
-        image_size=size,
-        roi_min=roi_min,
-        roi_max=roi_max,
-        views=tuple(views),
-        pattern=pattern,
-        intrinsic_images=intrinsic,
-        turntable_images=tuple(turntable),
-        background_images=background,
-        camera=camera,
-        reference=dict(reference),
-        calibration=calibration,
-        raw=raw,
-        notes=tuple(notes),
-    )
-    if check_images:
-        _check_images(session)
-    return session
+    return dict(reference)
 
 
 def _check_images(s):

@@ -9,7 +9,7 @@ scene.  The stage is a chain of small functions::
     mask = clean_mask(diff > t)                   # opening, closing, components, holes
     cov = coverage(image, bg, mask)               # sub-pixel silhouette in [0, 1]
 
-:func:`session_silhouettes` runs it for every view of a session, using a
+:func:`silhouettes` runs it for every view of a session, using a
 view's own ``mask`` where the session gives one.
 """
 
@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import SessionError
+from .session import Session, load_session
 
 __all__ = [
     "background_model",
@@ -30,7 +31,9 @@ __all__ = [
     "coverage",
     "Silhouette",
     "silhouette",
+    "silhouettes",
     "session_silhouettes",
+    "as_arrays",
 ]
 
 
@@ -329,7 +332,7 @@ def silhouette(image, background, *, threshold=None, mode="color", floor=0.0, **
     return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
 
 
-def session_silhouettes(
+def silhouettes(
     session, *, images=None, threshold=None, mode="color", background="median", progress=None, **clean
 ):
     """Silhouettes of every view of a session.
@@ -340,7 +343,7 @@ def session_silhouettes(
 
     Parameters
     ----------
-    session : Session
+    session : Session or str or Path
     images : sequence of (H, W) or (H, W, 3) uint8, optional
         The views' images, already read (one per view); read from the session
         when omitted.
@@ -354,6 +357,8 @@ def session_silhouettes(
     -------
     list of Silhouette, one per view
     """
+    if not isinstance(session, Session):
+        session = load_session(session)
     n = len(session.views)
     if images is not None and len(images) != n:
         raise ValueError(f"got {len(images)} images for {n} views")
@@ -381,3 +386,23 @@ def session_silhouettes(
         if progress is not None:
             progress(i + 1, n)
     return out
+
+
+#: The name this function had before organlab 0.2; same function.
+session_silhouettes = silhouettes
+
+
+def as_arrays(silhouettes, attribute):
+    """The masks or coverages of a list of silhouettes, for the carving functions.
+
+    Parameters
+    ----------
+    silhouettes : sequence of Silhouette or of (H, W) arrays
+        What :func:`silhouettes` returns, or plain arrays (passed through).
+    attribute : {'mask', 'coverage'}
+
+    Returns
+    -------
+    list of (H, W) arrays
+    """
+    return [getattr(s, attribute) if isinstance(s, Silhouette) else s for s in silhouettes]

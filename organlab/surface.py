@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Mesh", "mesh_from_volume", "write_ply", "write_stl"]
+__all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vertices", "write_ply", "write_stl", "read_ply"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,6 +116,84 @@ def mesh_from_volume(volume, grid, *, level=0.5):
     if mesh.volume < 0:
         mesh = Mesh(verts, faces[:, ::-1].copy())
     return mesh
+
+
+def mesh_from_field(field, grid):
+    """The surface of a hull field or a voxel model: its 0.5 level.
+
+    ``mesh_from_volume(field, grid, level=0.5)``; the level that
+    :func:`organlab.carving.hull_field` and occupancy arrays share.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float32 or bool
+        From :func:`organlab.carving.hull_field` (or an occupancy).
+    grid : VoxelGrid
+
+    Returns
+    -------
+    Mesh
+        World frame, mm, faces oriented outward.
+    """
+    return mesh_from_volume(field, grid, level=0.5)
+
+
+def measure(mesh):
+    """The measures of a mesh that ``report.json`` holds.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    dict
+        ``volume_mm3`` (enclosed volume, mm^3), ``area_mm2`` (mm^2),
+        ``watertight`` (every edge used exactly twice, in opposite directions),
+        ``n_vertices``, ``n_faces``, ``bounds_mm`` (``[[xmin, ymin, zmin], [xmax, ymax, zmax]]``).
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be an organlab.surface.Mesh, got {type(mesh).__name__}")
+    lo, hi = mesh.bounds
+    return {
+        "volume_mm3": float(mesh.volume),
+        "area_mm2": float(mesh.area),
+        "watertight": bool(mesh.is_watertight),
+        "n_vertices": int(len(mesh.vertices)),
+        "n_faces": int(len(mesh.faces)),
+        "bounds_mm": [np.asarray(lo, float).tolist(), np.asarray(hi, float).tolist()],
+    }
+
+
+def color_vertices(mesh, colors, colored, grid):
+    """The mesh with each vertex coloured as its nearest coloured voxel.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    colors : (nx, ny, nz, 3) uint8
+        Voxel colours (:func:`organlab.coloring.color_voxels`).
+    colored : (nx, ny, nz) bool
+        Voxels that got a colour.
+    grid : VoxelGrid
+
+    Returns
+    -------
+    Mesh
+        Same vertices and faces, ``vertex_colors`` (V, 3) uint8 (grey 128 when no voxel has a colour).
+    """
+    from scipy import ndimage
+
+    has = np.asarray(colored, dtype=bool)
+    if has.shape != tuple(grid.shape) or np.shape(colors)[:3] != tuple(grid.shape):
+        raise ValueError(f"colors {np.shape(colors)} and colored {has.shape} must match the grid {grid.shape}")
+    if not has.any():
+        return Mesh(mesh.vertices, mesh.faces, np.full((len(mesh.vertices), 3), 128, np.uint8))
+    _, idx = ndimage.distance_transform_edt(~has, return_indices=True)
+    ijk = np.rint((mesh.vertices - np.asarray(grid.origin)) / grid.voxel_size).astype(int)
+    ijk = np.clip(ijk, 0, np.asarray(grid.shape) - 1)
+    src = idx[:, ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    return Mesh(mesh.vertices, mesh.faces, np.asarray(colors)[src[0], src[1], src[2]])
 
 
 def write_ply(path, mesh):

@@ -105,15 +105,16 @@ def test_calibrates_when_no_camera_is_given(tmp_path):
     truth = make_session(root, image_size=(640, 480), n_views=8, n_intrinsic=10, n_turntable=6,
                          n_background=4, include_camera=False, include_poses=False, seed=5)
     rec = reconstruct(root, voxel_size=4.0)
-    assert (root / "calibration.json").is_file()
+    assert not (root / "calibration.json").exists()  # nothing is written into the session
     assert "calibration" in rec.report["timings_s"] and rec.report["camera"]["rms_px"] < 0.3
     true_centres = [np.asarray(v["center_mm"]) if "center_mm" in v else -np.asarray(v["R"]).T @ np.asarray(v["t"])
                     for v in truth["views"]]
     for cam, c in zip(rec.cameras, true_centres):
         assert np.linalg.norm(cam.center - c) < 2.0
-    # a second run reuses calibration.json
+    # saved into the session (as `organlab calibrate --in-place` does), a second run reuses it
+    rec.calibration.save(root / "calibration.json")
     again = reconstruct(root, voxel_size=4.0)
-    assert "calibration" not in again.report["timings_s"]
+    assert "calibration" not in again.report["timings_s"] and again.report["calibration"]["source"] == "reused"
     np.testing.assert_allclose(again.cameras[0].K, rec.cameras[0].K)
 
 

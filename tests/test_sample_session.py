@@ -42,7 +42,10 @@ def test_demo_report_matches_the_spec(demo, sessions, tmp_path):
     assert set(report["timings_s"]) == {"calibration", "silhouettes", "carving", "surface"}
     assert {"K", "dist", "rms_px"} <= report["camera"].keys() and report["camera"]["rms_px"] < 0.2
     assert len(report["views"]) == 36 and report["watertight"] is True
-    assert (sessions[0] / "calibration.json").is_file()
+    assert report["calibration"]["source"] == "computed"
+    # the calibration goes to the output folder, never into the session
+    assert paths["calibration"] == tmp_path / "calibration.json" and paths["calibration"].is_file()
+    assert not (sessions[0] / "calibration.json").exists()
 
 
 def test_volume_within_half_a_percent_at_1mm(demo, sessions):
@@ -52,9 +55,9 @@ def test_volume_within_half_a_percent_at_1mm(demo, sessions):
     assert demo.mesh.is_watertight
 
 
-def test_volume_within_one_percent_at_2mm(sessions):
-    rec = reconstruct(load_session(sessions[0]), voxel_size=2.0)  # reuses calibration.json
-    assert "calibration" not in rec.report["timings_s"]
+def test_volume_within_one_percent_at_2mm(demo, sessions):
+    rec = reconstruct(load_session(sessions[0]), voxel_size=2.0, calibration=demo.calibration)
+    assert "calibration" not in rec.report["timings_s"] and rec.report["calibration"]["source"] == "given"
     assert abs(rec.mesh.volume / sessions[2]["volume_mm3"] - 1) < 0.01
 
 

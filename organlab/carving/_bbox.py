@@ -37,6 +37,7 @@ import numpy as np
 from .._nbcam import pack_camera
 from ..camera import Camera
 from ..grid import VoxelGrid
+from ..silhouette import Silhouette
 
 __all__ = ["carve", "carve_reference", "ProgressiveCarver"]
 
@@ -51,7 +52,7 @@ def _check_view(mask, camera, index=None):
     where = "" if index is None else f" {index}"
     if not isinstance(camera, Camera):
         raise TypeError(f"camera{where} must be an organlab.camera.Camera, got {type(camera).__name__}")
-    m = np.asarray(mask)
+    m = np.asarray(mask.mask if isinstance(mask, Silhouette) else mask)
     if m.ndim != 2:
         raise ValueError(f"mask{where} must be a 2-D (H, W) array, got shape {m.shape}")
     if m.dtype != bool:
@@ -296,9 +297,10 @@ def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000, min_pixels=
 
     Parameters
     ----------
-    masks : sequence of (H, W) bool arrays
+    masks : sequence of (H, W) bool arrays, or of Silhouette
         Silhouettes, ``True`` = specimen; one per view.  Numeric arrays are
-        accepted (non-zero = specimen).
+        accepted (non-zero = specimen); a :class:`~organlab.silhouette.Silhouette`
+        gives its ``mask``.
     cameras : sequence of Camera
         The calibrated camera of each view; ``image_size == (W, H)``.
     grid : VoxelGrid
@@ -343,9 +345,10 @@ def carve(masks, cameras, grid, *, tolerance=0, min_pixels=1):
 
     Parameters
     ----------
-    masks : sequence of (H, W) bool arrays
+    masks : sequence of (H, W) bool arrays, or of Silhouette
         Silhouettes, ``True`` = specimen; one per view.  Numeric arrays are
-        accepted (non-zero = specimen).
+        accepted (non-zero = specimen); a :class:`~organlab.silhouette.Silhouette`
+        gives its ``mask``.
     cameras : sequence of Camera
         The calibrated camera of each view; ``image_size == (W, H)``.
     grid : VoxelGrid

@@ -197,6 +197,9 @@ def _carve_box(counts, pyr, off, dims, L, x0, x1, y0, y1, z0, z1, tol):
                     _kill(counts, pyr, off, dims, L, x, y, z, tol)
 
 
+# A kernel longer than the project's 80-line rule, on purpose: it is the innermost loop of
+# `carve` (corner projection, conservative pixel range and the summed-area test of the 8
+# voxels of a block), kept in one piece so that the hot loop makes no further calls.
 @njit(cache=True)
 def _leaf(cp, sat, w, h, ax, ay, az, counts, pyr, off, dims, L, x0, y0, z0, tol, min_pixels, deferred, nd_start, nd,
           U, V, S):

@@ -61,6 +61,7 @@ from numba import njit, prange
 
 from .._nbcam import pack_camera, to_camera, to_pixel
 from ..camera import Camera
+from ..silhouette import as_arrays
 from ._bbox import _check_grid
 
 __all__ = ["hull_field"]
@@ -350,8 +351,9 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
 
     Parameters
     ----------
-    silhouettes : sequence of (H, W) bool or float arrays
-        One per view: a bool mask (``True`` = specimen) or a float coverage
+    silhouettes : sequence of (H, W) bool or float arrays, or of Silhouette
+        One per view (a :class:`~organlab.silhouette.Silhouette` gives its
+        ``coverage``): a bool mask (``True`` = specimen) or a float coverage
         image in ``[0, 1]`` (the fraction of each pixel covered by the
         specimen, e.g. an anti-aliased or soft-thresholded silhouette; the
         outline is where coverage crosses 0.5, located sub-pixel).
@@ -402,7 +404,7 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
     if isinstance(silhouettes, np.ndarray) and silhouettes.ndim == 2:
         silhouettes = [silhouettes]
     cameras = [cameras] if isinstance(cameras, Camera) else list(cameras)
-    silhouettes = list(silhouettes)
+    silhouettes = as_arrays(silhouettes, "coverage")
     if len(silhouettes) != len(cameras):
         raise ValueError(f"got {len(silhouettes)} silhouettes but {len(cameras)} cameras: give one camera per silhouette")
     if len(cameras) == 0:

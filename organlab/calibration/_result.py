@@ -1,0 +1,532 @@
+"""One calibration result: :class:`Calibration`, its file form ``calibration.json``, and the session glue.
+
+A :class:`Calibration` holds the intrinsics (fitted, or given in ``session.json``), the turntable
+fit when there was one, the board pattern and a *fingerprint* of what it was computed from (the
+board images' bytes, the pattern, the image size, given intrinsics).  The fingerprint lets a later
+run tell whether a saved calibration still belongs to a session: a ``calibration.json`` computed
+with another square size, from other board images or at another image size is never used silently.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import CalibrationError
+from ..session import Pattern, Session, load_session, write_json
+from ._common import _stored_corners
+from ._intrinsics import IntrinsicCalibration, calibrate_intrinsics
+from ._turntable import TurntableCalibration, calibrate_turntable
+
+FORMAT = "organlab.calibration/1"
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """The calibration of a session's camera and turntable.
+
+    Attributes
+    ----------
+    camera : Camera
+        Intrinsics (``K``, ``dist``, ``image_size``), identity pose.
+    intrinsics : IntrinsicCalibration or None
+        The intrinsic fit (per-image errors, uncertainties, corners); None when the
+        intrinsics were given in ``session.json``.
+    turntable : TurntableCalibration or None
+        The turntable fit (camera pose at table angle 0, axis, per-image errors); None when
+        every view has a given pose.
+    pattern : Pattern or None
+        The board the fits used.
+    fingerprint : dict or None
+        What the calibration was computed from (:func:`session_fingerprint`); None for a
+        file written before fingerprints existed.
+    """
+
+    camera: Camera
+    intrinsics: IntrinsicCalibration | None = None
+    turntable: TurntableCalibration | None = None
+    pattern: Pattern | None = None
+    fingerprint: dict | None = None
+
+    # ------------------------------------------------------------ reading
+    @property
+    def rms_px(self):
+        """Intrinsic reprojection RMS, px (None when the intrinsics were given)."""
+        return None if self.intrinsics is None else self.intrinsics.rms_px
+
+    @property
+    def turntable_rms_px(self):
+        """Turntable joint-fit RMS, px (None without a turntable fit)."""
+        return None if self.turntable is None else self.turntable.rms_px
+
+    def cameras(self, session):
+        """The camera of every view of ``session``.
+
+        A view's pose is its given ``pose`` when ``session.json`` has one, otherwise the
+        turntable's ``R = R_cam @ Rz(angle)``, ``t = t_cam``.
+
+        Parameters
+        ----------
+        session : Session
+
+        Returns
+        -------
+        list of Camera, one per view, world to camera, mm
+        """
+        session = _as_session(session)
+        if tuple(self.camera.image_size) != tuple(session.image_size):
+            raise CalibrationError(
+                f"{session.json_path}: image_size: the calibration is for {_wxh(self.camera.image_size)} images, "
+                f"the session's are {_wxh(session.image_size)}; recalibrate (organlab reconstruct --recalibrate)"
+            )
+        cams = []
+        for i, v in enumerate(session.views):
+            if v.pose is not None:
+                cams.append(self.camera.with_pose(*v.pose))
+            elif self.turntable is not None:
+                cams.append(self.turntable.camera.at_table_angle(v.angle_deg))
+            else:
+                raise CalibrationError(
+                    f"{session.json_path}: views[{i}].pose: no pose and no turntable calibration; "
+                    f"run 'organlab calibrate {session.root}'"
+                )
+        return cams
+
+    def mismatch(self, session):
+        """Why this calibration does not belong to ``session`` (empty when it does).
+
+        Compared: the image size; and, when the session has board images, the pattern, the
+        board images' content and the intrinsics given in ``session.json``.
+
+        Returns
+        -------
+        list of str
+        """
+        session = _as_session(session)
+        why = []
+        if tuple(self.camera.image_size) != tuple(session.image_size):
+            why.append(f"it is for {_wxh(self.camera.image_size)} images, the session's are {_wxh(session.image_size)}")
+        if not (session.intrinsic_images or session.turntable_images):
+            return why
+        if self.fingerprint is None:
+            return why + ["it has no fingerprint (written by an older organlab), so it cannot be checked"]
+        now = session_fingerprint(session)
+        if self.fingerprint.get("pattern") != now["pattern"]:
+            why.append(f"its pattern {_pat(self.fingerprint.get('pattern'))} differs from the session's {_pat(now['pattern'])}")
+        if self.fingerprint.get("board_images") != now["board_images"]:
+            why.append("it was computed from other board images (or angles) than the session's")
+        if self.fingerprint.get("camera_given") != now["camera_given"]:
+            why.append("the intrinsics given in session.json changed")
+        return why
+
+    # ------------------------------------------------------------ file form
+    def to_dict(self):
+        """JSON-ready: the content of ``calibration.json`` (``docs/session-format.md``)."""
+        out = {"format": FORMAT}
+        if self.pattern is not None:
+            out["pattern"] = {"inner_corners": list(self.pattern.inner_corners), "square_size": self.pattern.square_size}
+        if self.intrinsics is not None:
+            out["camera"] = self.intrinsics.to_dict()
+        else:
+            out["camera"] = dict(self.camera.intrinsics_dict(), rms_px=None, source="session.json")
+        if self.turntable is not None:
+            out["turntable"] = self.turntable.to_dict()
+        if self.fingerprint is not None:
+            out["fingerprint"] = dict(self.fingerprint)
+        return out
+
+    @classmethod
+    def from_dict(cls, d, *, image_size=None, where="calibration.json"):
+        """Build from the content of a ``calibration.json``, checking it.
+
+        Parameters
+        ----------
+        d : dict
+        image_size : (2,) int, optional
+            ``(width, height)`` px, used when ``d['camera']`` has none (older files).
+        where : str
+            Named in error messages (the file).
+
+        Raises
+        ------
+        CalibrationError
+            One line per problem, each naming ``where`` and the key.
+        """
+        return _from_dict(cls, d, image_size, str(where))
+
+    def save(self, path):
+        """Write ``calibration.json`` atomically (a temporary file, then renamed).
+
+        Returns
+        -------
+        Path
+        """
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+        try:
+            write_json(tmp, self.to_dict())
+            os.replace(tmp, path)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            raise CalibrationError(f"{path}: cannot write the calibration ({e.strerror}); choose a writable folder") from None
+        return path
+
+    @classmethod
+    def load(cls, path, *, image_size=None):
+        """Read and check a ``calibration.json``.
+
+        Raises
+        ------
+        CalibrationError
+            Missing file, invalid JSON, or a wrong shape: one line per problem.
+        """
+        path = Path(path)
+        if path.is_dir():
+            path = path / "calibration.json"
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise CalibrationError(f"{path}: no such calibration file") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise CalibrationError(f"{path}: invalid JSON ({e}); recalibrate (organlab calibrate)") from None
+        return cls.from_dict(d, image_size=image_size, where=path)
+
+    def summary(self):
+        """A few lines for a terminal."""
+        K = self.camera.K
+        lines = []
+        if self.intrinsics is None:
+            lines.append("intrinsics given in session.json")
+        else:
+            lines.append(f"intrinsics RMS {self.rms_px:.3f} px over {len(self.intrinsics.per_image_rms)} images"
+                         + (f" ({len(self.intrinsics.rejected)} rejected)" if self.intrinsics.rejected else ""))
+        lines.append(f"fx {K[0, 0]:.2f}, fy {K[1, 1]:.2f}, cc ({K[0, 2]:.2f}, {K[1, 2]:.2f}), "
+                     f"kc {[round(float(k), 5) for k in self.camera.dist]}")
+        if self.turntable is not None:
+            t = self.turntable
+            lines.append(f"turntable RMS {t.rms_px:.3f} px over {len(t.per_image_rms) - len(t.flagged)} images"
+                         + (f" (flagged: {', '.join(t.flagged)})" if t.flagged else ""))
+        return lines
+
+
+# ================================================================= session glue
+def session_fingerprint(session):
+    """What a calibration of ``session`` is computed from, hashed.
+
+    Returns
+    -------
+    dict
+        ``image_size``, ``pattern`` (or None), ``board_images`` (SHA-256 over every board
+        image's name, bytes and table angle, in session order), ``camera_given`` (the
+        intrinsics given in ``session.json``, or None).
+    """
+    session = _as_session(session)
+    h = hashlib.sha256()
+    items = [(p, None) for p in session.intrinsic_images] + list(session.turntable_images)
+    for p, angle in items:
+        h.update(session.relpath(p).encode())
+        h.update(Path(p).read_bytes())
+        h.update(repr(None if angle is None else float(angle)).encode())
+    pat = session.pattern
+    given = None if session.camera is None else {
+        "K": np.asarray(session.camera["K"], float).tolist(), "dist": np.asarray(session.camera["dist"], float).tolist()}
+    return {
+        "image_size": list(session.image_size),
+        "pattern": None if pat is None else {"inner_corners": list(pat.inner_corners), "square_size": float(pat.square_size)},
+        "board_images": h.hexdigest(),
+        "camera_given": given,
+    }
+
+
+def calibrate(session, *, progress=None):
+    """Calibrate a session from its board images.
+
+    Intrinsics come from ``session.json``'s ``camera`` when given (no fit), otherwise from
+    ``calibration.intrinsic_images``; the turntable fit runs when
+    ``calibration.turntable_images`` are given.  Nothing is written: see
+    :meth:`Calibration.save`.
+
+    Parameters
+    ----------
+    session : Session or str or Path
+    progress : callable(done, total), optional
+        Over all calibration images.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    CalibrationError
+    """
+    session = _as_session(session)
+    where = session.json_path
+    need_intr = session.camera is None
+    n_intr = len(session.intrinsic_images) if need_intr else 0
+    n_tt = len(session.turntable_images)
+    if need_intr and n_intr == 0:
+        raise CalibrationError(f"{where}: no intrinsics: give 'camera' or 'calibration.intrinsic_images'")
+    if (n_intr or n_tt) and session.pattern is None:
+        raise CalibrationError(
+            f"{where}: pattern is required to calibrate from board images: {{'inner_corners': [cols, rows], 'square_size': mm}}")
+    total = n_intr + n_tt
+
+    def sub(offset):
+        return None if progress is None else (lambda done, _n: progress(offset + done, total))
+
+    intr = None
+    camera = session.given_camera()
+    if need_intr:
+        imgs = [session.read(p, key=f"calibration.intrinsic_images[{i}]", grey=True) for i, p in enumerate(session.intrinsic_images)]
+        names = [session.relpath(p) for p in session.intrinsic_images]
+        try:
+            intr = calibrate_intrinsics(imgs, session.pattern, image_size=session.image_size, names=names, progress=sub(0))
+        except CalibrationError as e:
+            raise CalibrationError(f"{where}: calibration.intrinsic_images: {e}") from None
+        camera = intr.camera
+    tt = None
+    if n_tt:
+        imgs = [session.read(p, key=f"calibration.turntable_images[{i}].image", grey=True)
+                for i, (p, _) in enumerate(session.turntable_images)]
+        names = [session.relpath(p) for p, _ in session.turntable_images]
+        angles = [a for _, a in session.turntable_images]
+        try:
+            tt = calibrate_turntable(imgs, angles, camera, session.pattern, names=names, progress=sub(n_intr))
+        except CalibrationError as e:
+            raise CalibrationError(f"{where}: calibration.turntable_images: {e}") from None
+    return Calibration(camera, intr, tt, session.pattern, session_fingerprint(session))
+
+
+def needs_calibration(session):
+    """True when the session lacks given intrinsics, or a view lacks a given pose."""
+    session = _as_session(session)
+    return session.camera is None or any(v.pose is None for v in session.views)
+
+
+def calibration_for(session, *, calibration=None, recalibrate=False, progress=None):
+    """The calibration a reconstruction of ``session`` should use, and how it was obtained.
+
+    In order: ``calibration`` when given (checked against the session: refused when it was
+    computed from other board images, another pattern or image size); nothing to calibrate
+    when ``session.json`` gives the intrinsics and every pose; the session's own
+    ``calibration.json`` when it matches the session (:meth:`Calibration.mismatch`);
+    otherwise (or with ``recalibrate``) a new :func:`calibrate`.  Nothing is written.
+
+    Parameters
+    ----------
+    session : Session or str or Path
+    calibration : Calibration or str or Path, optional
+        A calibration (or its ``calibration.json``) to use instead of the session's own.
+    recalibrate : bool
+        Calibrate even when the session has a matching ``calibration.json``.
+    progress : callable(done, total), optional
+        Passed to :func:`calibrate` when it runs.
+
+    Returns
+    -------
+    calibration : Calibration
+    how : str
+        ``'computed'``, ``'given'``, ``'session.json'``, ``'reused'`` or
+        ``'recomputed: <why the saved one was not used>'``.
+    """
+    session = _as_session(session)
+    if calibration is not None:
+        if not isinstance(calibration, Calibration):
+            calibration = Calibration.load(calibration, image_size=session.image_size)
+        why = calibration.mismatch(session)
+        if why:
+            raise CalibrationError(
+                f"{session.json_path}: the given calibration does not belong to this session: {'; '.join(why)}; "
+                "recalibrate (organlab reconstruct --recalibrate) or give the right calibration.json")
+        return calibration, "given"
+    if not needs_calibration(session):
+        return Calibration(session.given_camera(), fingerprint=session_fingerprint(session)), "session.json"
+    if session.calibration is not None and not recalibrate:
+        saved = Calibration.from_dict(session.calibration, image_size=session.image_size, where=session.calibration_path)
+        why = saved.mismatch(session)
+        if saved.turntable is None and any(v.pose is None for v in session.views):
+            why.append("it has no turntable fit and some views have no pose")
+        if not why:
+            return saved, "reused"
+        if not (session.intrinsic_images or session.turntable_images):
+            raise CalibrationError(f"{session.calibration_path}: does not match the session ({'; '.join(why)}) "
+                                   "and the session has no board images to recalibrate from")
+        return calibrate(session, progress=progress), f"recomputed: {session.calibration_path.name} not used: {'; '.join(why)}"
+    return calibrate(session, progress=progress), "computed"
+
+
+# ================================================================= file form, read
+def _as_session(session):
+    return session if isinstance(session, Session) else load_session(session)
+
+
+def _wxh(size):
+    return f"{size[0]}x{size[1]}"
+
+
+def _pat(p):
+    return "none" if not p else f"{p['inner_corners'][0]}x{p['inner_corners'][1]} of {p['square_size']:g} mm"
+
+
+class _Problems:
+    """Collects one line per problem in a calibration.json."""
+
+    def __init__(self, where):
+        self.where, self.lines = where, []
+
+    def add(self, key, message):
+        self.lines.append(f"{self.where}: {key}: {message}")
+
+    def array(self, value, shape, key, *, required=True):
+        if value is None:
+            if required:
+                self.add(key, f"is missing; expected {_shape_text(shape)}")
+            return None
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            self.add(key, f"must be {_shape_text(shape)} numbers, got {_short(value)}")
+            return None
+        if a.shape != shape:
+            self.add(key, f"must be {_shape_text(shape)}, got shape {a.shape}")
+            return None
+        if not np.all(np.isfinite(a)):
+            self.add(key, "must hold finite numbers")
+            return None
+        return a
+
+    def number(self, value, key, *, required=False):
+        if value is None:
+            if required:
+                self.add(key, "is missing")
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            self.add(key, f"must be a finite number >= 0, got {_short(value)}")
+            return None
+        return float(value)
+
+    def raise_if_any(self):
+        if self.lines:
+            hint = "; fix it or recalibrate (organlab calibrate, or reconstruct --recalibrate)"
+            raise CalibrationError("\n".join(self.lines) + hint)
+
+
+def _shape_text(shape):
+    return {(3, 3): "a 3x3 matrix", (5,): "5 numbers [k1, k2, p1, p2, k3]", (3,): "3 numbers", (2,): "2 numbers"}.get(shape, str(shape))
+
+
+def _short(v):
+    s = repr(v)
+    return s if len(s) < 40 else s[:37] + "..."
+
+
+def _from_dict(cls, d, image_size, where):
+    pr = _Problems(where)
+    if not isinstance(d, dict):
+        raise CalibrationError(f"{where}: must be a JSON object with 'camera' (and 'turntable'); recalibrate")
+    cam_d = d.get("camera")
+    if not isinstance(cam_d, dict):
+        pr.add("camera", f"must be an object with K, dist, image_size, got {_short(cam_d)}")
+        pr.raise_if_any()
+    K = pr.array(cam_d.get("K"), (3, 3), "camera.K")
+    dist = pr.array(cam_d.get("dist", [0, 0, 0, 0, 0]), (5,), "camera.dist")
+    size = cam_d.get("image_size", image_size)
+    if size is None or not (len(size) == 2 and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+        pr.add("camera.image_size", f"must be [width, height] in px, got {_short(size)}")
+    tt_d = d.get("turntable")
+    if tt_d is not None and not isinstance(tt_d, dict):
+        pr.add("turntable", f"must be an object with R_cam, t_cam, got {_short(tt_d)}")
+        tt_d = None
+    R = t = None
+    if tt_d is not None:
+        R = pr.array(tt_d.get("R_cam"), (3, 3), "turntable.R_cam")
+        t = pr.array(tt_d.get("t_cam"), (3,), "turntable.t_cam")
+    pattern = _pattern(d.get("pattern"), pr)
+    fp = d.get("fingerprint")
+    if fp is not None and not isinstance(fp, dict):
+        pr.add("fingerprint", "must be an object")
+        fp = None
+    pr.raise_if_any()
+    try:
+        camera = Camera(K, dist, image_size=tuple(size))
+    except ValueError as e:
+        pr.add("camera", str(e))
+        pr.raise_if_any()
+    tt_cam = None
+    if tt_d is not None:
+        try:
+            tt_cam = camera.with_pose(R, t)
+        except ValueError as e:
+            pr.add("turntable.R_cam", str(e))
+    pr.raise_if_any()
+    intr = None if cam_d.get("source") == "session.json" else _intrinsics_from(cam_d, camera, pr)
+    tt = None if tt_d is None else _turntable_from(tt_d, tt_cam, pr)
+    pr.raise_if_any()
+    return cls(camera, intr, tt, pattern, fp)
+
+
+def _pattern(p, pr):
+    if p is None:
+        return None
+    ic = p.get("inner_corners") if isinstance(p, dict) else None
+    sq = p.get("square_size") if isinstance(p, dict) else None
+    if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) for v in ic)) or pr.number(sq, "pattern.square_size") is None:
+        pr.add("pattern", f"must be {{'inner_corners': [cols, rows], 'square_size': mm}}, got {_short(p)}")
+        return None
+    return Pattern(tuple(ic), float(sq))
+
+
+def _per_image(images, pr, key):
+    if images is None:
+        return {}
+    if not isinstance(images, dict):
+        pr.add(key, "must be an object keyed by image name")
+        return {}
+    return {n: e for n, e in images.items() if isinstance(e, dict)}
+
+
+def _intrinsics_from(cam_d, camera, pr):
+    images = _per_image(cam_d.get("images"), pr, "camera.images")
+    rms = pr.number(cam_d.get("rms_px"), "camera.rms_px")
+    std = {k: np.asarray(v, dtype=np.float64) for k, v in (cam_d.get("std") or {}).items()}
+    if "alpha_c" in std:
+        std["alpha_c"] = float(std["alpha_c"])
+    ext = {}
+    for n, e in images.items():
+        if "rvec" in e and "tvec" in e:
+            ext[n] = (np.asarray(e["rvec"], dtype=np.float64), np.asarray(e["tvec"], dtype=np.float64))
+    corners = {n: c for n, c in ((n, _stored_corners(e)) for n, e in images.items()) if c is not None}
+    return IntrinsicCalibration(
+        camera=camera,
+        rms_px=rms,
+        per_image_rms={n: float(e["rms_px"]) for n, e in images.items() if "rms_px" in e},
+        std=std,
+        rejected=dict(cam_d.get("rejected") or {}),
+        extrinsics=ext,
+        corners=corners,
+        fixed=tuple(cam_d.get("fixed") or ()),
+    )
+
+
+def _turntable_from(tt_d, camera, pr):
+    images = _per_image(tt_d.get("images"), pr, "turntable.images")
+    off = (tt_d.get("axis") or {}).get("board_offset_mm", [0.0, 0.0])
+    return TurntableCalibration(
+        camera=camera,
+        rms_px=pr.number(tt_d.get("rms_px"), "turntable.rms_px"),
+        per_image_rms={n: float(e["rms_px"]) for n, e in images.items() if "rms_px" in e},
+        flagged=list(tt_d.get("flagged") or []),
+        rejected=dict(tt_d.get("rejected") or {}),
+        angles_deg={n: float(e["angle_deg"]) for n, e in images.items() if "angle_deg" in e},
+        board_offset_mm=np.asarray(off, dtype=np.float64),
+        std={k: np.asarray(v, dtype=np.float64) for k, v in (tt_d.get("std") or {}).items()},
+        corners={n: c for n, c in ((n, _stored_corners(e)) for n, e in images.items()) if c is not None},
+    )
