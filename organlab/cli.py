@@ -186,6 +186,9 @@ def _reconstruct(a):
     print(f"organlab reconstruct: {rec.session.name} -> {a.out}")
     print(summary_table(rec.report))
     print(f"  wrote {', '.join(p.name for p in paths.values())}")
+    for what in ("intrinsic", "turntable"):
+        for name, why in rec.report.get("calibration", {}).get(f"{what}_rejected", {}).items():
+            print(f"  {what} image {name} not used: {why}")
     warnings = rec.report.get("warnings", [])
     for w in warnings:
         print(f"organlab: warning: {w}", file=sys.stderr)

@@ -277,6 +277,13 @@ def _add_checks(report, session, grid, mesh, cameras, sils, cal):
     report.setdefault("warnings", []).extend(agr.warnings)
     if getattr(session, "notes", ()):
         report["notes"] = list(session.notes)  # re-orthonormalised rotations
+    # calibration images not used, and why (no board found, board moved)
+    for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
+        if fit is not None:
+            report["calibration"][f"{what}_rejected"] = dict(fit.rejected)
+    if cal.turntable is not None:
+        report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
+    report["warnings"].extend(cal.warnings())
 
 
 def _color(images, cameras, occupancy, grid, sils, method, color_threshold, *, progress):
