@@ -287,3 +287,43 @@ def test_a_turntable_fit_far_above_the_intrinsic_rms_warns(tmp_path, monkeypatch
     assert cal.turntable.flagged == [] and cal.turntable_rms_px > TURNTABLE_RMS_FACTOR * cal.rms_px
     (w,) = cal.warnings()
     assert "turntable fit RMS" in w and f"{TURNTABLE_RMS_FACTOR:g}x" in w
+
+
+# ------------------------------------------------------------------ calibration.json of the wrong shape
+def _wrong(d, case):
+    if case == "camera 5":
+        return {"camera": 5}
+    if case == "K abc":
+        d["camera"]["K"] = "abc"
+    elif case == "no R_cam":
+        del d["turntable"]["R_cam"]
+    elif case == "R_cam 1 % off":
+        d["turntable"]["R_cam"] = (np.array(d["turntable"]["R_cam"]) * 1.01).tolist()
+    return d
+
+
+@pytest.mark.parametrize(
+    "case, key",
+    [("camera 5", "camera"), ("K abc", "camera.K"), ("no R_cam", "turntable.R_cam"), ("R_cam 1 % off", "turntable.R_cam")],
+)
+def test_calibration_json_of_the_wrong_shape_is_one_line(case, key, calibrated, tmp_path, capsys):
+    root = tmp_path / "s"
+    shutil.copytree(calibrated, root)
+    d = json.loads((root / "calibration.json").read_text())
+    (root / "calibration.json").write_text(json.dumps(_wrong(d, case)))
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    _one_line_error(capsys, "calibration.json", key)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_turntable_rotation_printed_to_few_digits_is_accepted(calibrated, tmp_path):
+    from organlab.calibration import Calibration
+
+    d = json.loads((calibrated / "calibration.json").read_text())
+    R = np.array(d["turntable"]["R_cam"])
+    d["turntable"]["R_cam"] = (R * (1 + 4e-5 * np.array([[1, -1, 0], [0, 1, 1], [1, 0, -1]]))).tolist()  # |R R^T - I| 8e-5
+    (tmp_path / "calibration.json").write_text(json.dumps(d))
+    cal = Calibration.load(tmp_path / "calibration.json", image_size=(640, 480))
+    R2 = cal.turntable.camera.R
+    np.testing.assert_allclose(R2 @ R2.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R2, R, atol=1e-4)

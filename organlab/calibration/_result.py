@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, nearest_rotation
 from ..errors import CalibrationError
 from ..session import Pattern, Session, load_session, write_json
 from ._common import _stored_corners
@@ -488,8 +488,8 @@ def _from_dict(cls, d, image_size, where):
         pr.raise_if_any()
     tt_cam = None
     if tt_d is not None:
-        try:
-            tt_cam = camera.with_pose(R, t)
+        try:  # printed to a few digits: within 1e-4 of orthonormal, replaced by the nearest rotation
+            tt_cam = camera.with_pose(nearest_rotation(R)[0], t)
         except ValueError as e:
             pr.add("turntable.R_cam", str(e))
     pr.raise_if_any()
