@@ -243,6 +243,8 @@ def _calibrate(a):
         for name, why in (fit.rejected.items() if fit is not None else ()):
             print(f"  {what} image {name} not used: {why}")
     print(f"  {len(figs)} check figures in {Path(figs[0]).parent if figs else '-'}")
+    for w in cal.warnings():
+        print(f"organlab: warning: {w}", file=sys.stderr)
     return 0
 
 
