@@ -14,6 +14,10 @@ $(STAMP): environment.txt pyproject.toml
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
 	@# OpenCV's sample chessboard photos (real calibration data with a published reference) for the tests
 	@if [ ! -f /usr/share/doc/opencv-doc/examples/data/left01.jpg ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends opencv-doc >/dev/null 2>&1 || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends opencv-doc >/dev/null; } || echo "warning: opencv-doc not installed; tests/test_calibration_real.py will be skipped" >&2; fi
+	@# Debian's chromium for the viewer's browser test (Playwright drives it; never 'playwright install')
+	@if [ ! -x /usr/bin/chromium ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1 || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; } || echo "warning: chromium not installed; tests/test_viewer_browser.py will be skipped" >&2; fi
+	@# gmsh's wheel links X11/OpenGL client libraries (no display is used): install them when missing
+	@if ! ldconfig -p | grep -q libGLU.so.1 || ! ldconfig -p | grep -q libXcursor.so.1 || ! ldconfig -p | grep -q libXft.so.2 || ! ldconfig -p | grep -q libXinerama.so.1; then if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends libglu1-mesa libxcursor1 libxft2 libxinerama1 libgomp1 >/dev/null || echo "warning: gmsh's libraries not installed; tetrahedral meshing will fail" >&2; else echo "warning: install libglu1-mesa libxcursor1 libxft2 libxinerama1 for gmsh" >&2; fi; fi
 	@touch $(STAMP)
 
 venv: $(STAMP)

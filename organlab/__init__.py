@@ -7,8 +7,9 @@ The whole pipeline, one public function per stage::
     cal = ol.calibrate(s)                        # or ol.Calibration.load(path); cal.save(path)
     sils = ol.silhouettes(s, threshold=None)
     grid = ol.VoxelGrid.from_session(s, voxel_size=1.0)
-    field = ol.hull_field(sils, cal.cameras(s), grid)
+    field = ol.hull_field(sils, cal.cameras(s), grid, sparse=True)
     mesh = ol.mesh_from_field(field, grid)
+    mesh, steps = ol.finish_surface(mesh, voxel_size=1.0)   # repaired, remeshed
     ol.measure(mesh)                             # volume, area, watertight
 
 Stages, one module (or package) each: :mod:`organlab.session` (session
@@ -44,6 +45,7 @@ _LAZY = {
     "mesh_from_field": "surface",
     "mesh_from_volume": "surface",
     "measure": "surface",
+    "finish_surface": "surface",
     "Reconstruction": "pipeline",
     "reconstruct": "pipeline",
     "write_outputs": "pipeline",

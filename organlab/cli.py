@@ -2,11 +2,13 @@
 
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
                          [--method hull|coloring|space_carving] [--color-threshold X]
-                         [--calibration PATH] [--recalibrate]
+                         [--calibration PATH] [--recalibrate] [--measure] [--raw-surface]
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
     organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--force]
+    organlab mesh RESULT_DIR [--repair] [--smooth] [--remesh MM] [--tetra] [--measure] [--picture]
     organlab synth OUT [--seed N] [--specimen aaa|grooved] [--small] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [...]
+    organlab view SESSION [--result DIR] [--port P] [--host H] [--voxel-size MM]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -71,6 +73,8 @@ def _parser():
                    "(views that disagree with the model, a poor turntable fit, ...)")
     r.add_argument("--max-memory", default=None, metavar="SIZE",
                    help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
+    r.add_argument("--measure", action="store_true", help="AAA measurements in the report (default: when the session is an AAA)")
+    r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
     c.add_argument("session", type=Path)
@@ -84,6 +88,8 @@ def _parser():
     c.add_argument("--quiet", action="store_true")
 
     _init_parser(sub)
+    _add_view_parser(sub)
+    _mesh_parser(sub)
 
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
                        "'organlab synth --help' lists its options)")
@@ -154,6 +160,70 @@ def _capture_parser(sub):
     # on_view=lambda i, angle, image: ... to run_capture once LiveView.add_view is in main.
 
 
+def _add_view_parser(sub):
+    v = sub.add_parser("view", help="live 3D viewer in the browser (viser): the views, the hull as it grows, "
+                       "controls that re-run it")
+    v.add_argument("session", type=Path, help="session folder (holds session.json)")
+    v.add_argument("--result", type=Path, default=None, metavar="DIR",
+                   help="show a folder written by 'organlab reconstruct' instead of reconstructing at start")
+    v.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
+    v.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
+    v.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
+
+
+def _view(a):
+    import time
+
+    from .viewer import SessionViewer
+
+    app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port)
+    print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
+    try:
+        while True:
+            time.sleep(1.0)
+    finally:
+        app.stop()
+def _mesh_parser(sub):
+    m = sub.add_parser("mesh", help="repair, smooth, remesh, tetrahedralize and measure a reconstruction's surface")
+    m.add_argument("result", type=Path, help="output folder of 'organlab reconstruct' (holds voxels.npz)")
+    m.add_argument("--repair", action="store_true", help="close holes, remove non-manifold edges/vertices and specks")
+    m.add_argument("--smooth", action="store_true", help="Taubin smoothing")
+    m.add_argument("--remesh", type=_positive_float, default=None, metavar="MM", help="isotropic remeshing to edges of MM")
+    m.add_argument("--tetra", action="store_true", help="tetrahedral mesh (gmsh) as tetra.vtu/.msh/.inp/.xdmf")
+    m.add_argument("--measure", action="store_true", help="AAA centreline and diameters to aaa.json")
+    m.add_argument("--picture", action="store_true", help="with --measure: aaa_measures.png")
+    return m
+
+
+def _mesh(a):
+    from .surface import mesh_result
+
+    steps = a.repair or a.smooth or a.remesh is not None
+    # no step named: all of them, remeshing at 1.5 voxels
+    report, paths = mesh_result(
+        a.result,
+        repair=a.repair or not steps,
+        smooth=a.smooth or not steps,
+        remesh=a.remesh if steps else "auto",
+        tetra=a.tetra,
+        measure=a.measure,
+        picture=a.picture,
+    )
+    q = report["final"]
+    print(f"organlab mesh: {a.result} -> {a.result / 'surface'}")
+    print(f"  {q['faces']} faces, watertight {'yes' if report['watertight'] else 'NO'}, smallest angle "
+          f"{q['min_angle_deg']:.1f} deg, volume {q['volume_mm3'] / 1000:.2f} cm3 ({report['volume_change_pct']:+.2f} %)")
+    if "tetra" in report:
+        t = report["tetra"]
+        print(f"  {t['tets']} tetrahedra, radius ratio min {t['radius_ratio_min']:.2f}, scaled Jacobian min {t['scaled_jacobian_min']:.2f}")
+    if "aaa" in report:
+        m = report["aaa"]
+        print(f"  max diameter {m['max_diameter_mm']:.1f} mm at z {m['max_location_mm'][2]:.1f} mm, "
+              f"sac {m['sac_length_mm']:.0f} mm, {m['sac_volume_mm3'] / 1000:.1f} cm3")
+    print(f"  wrote {', '.join(p.name for p in paths.values())}")
+    return 0
+
+
 def _bars(quiet):
     from ._progress import NullProgress, ProgressBar
 
@@ -178,6 +248,8 @@ def _reconstruct(a):
         recalibrate=a.recalibrate,
         progress=_bars(a.quiet),
         max_memory=max_memory,
+        finish=not a.raw_surface,
+        measure=True if a.measure else None,
     )
     with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
         paths = write_outputs(rec, tmp, atomic=False)
@@ -284,7 +356,8 @@ def main(argv=None):
         args, handler = argv[1:], _synth
     else:
         args = _parser().parse_args(argv)
-        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "init": _init}[args.command]
+        handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "view": _view,
+                   "mesh": _mesh, "init": _init}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

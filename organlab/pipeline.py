@@ -7,8 +7,9 @@ writes by hand), plus progress bars and timings::
     cameras = cal.cameras(session)
     sils = silhouettes(session)                # organlab.silhouette
     grid = VoxelGrid.from_session(session, voxel_size=1.0)
-    field = hull_field(sils, cameras, grid)    # organlab.carving
+    field = hull_field(sils, cameras, grid, sparse=True)  # organlab.carving
     mesh = mesh_from_field(field, grid)        # organlab.surface
+    mesh, steps = finish_surface(mesh, voxel_size=1.0)
     measure(mesh)
 
 :func:`write_outputs` writes the files that ``docs/session-format.md``
@@ -72,8 +73,10 @@ class Reconstruction:
     silhouettes : list of organlab.silhouette.Silhouette
     report : dict
         The content of ``report.json``.
-    field : (nx, ny, nz) float32 or None
-        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``).
+    field : organlab.carving.BandField or None
+        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``),
+        stored in a narrow band; ``np.asarray(field)`` is the dense
+        ``(nx, ny, nz)`` float32 field.
     colors : (nx, ny, nz, 3) uint8 or None
         Voxel colours (``method='coloring'``).
     calibration : organlab.calibration.Calibration
@@ -90,6 +93,8 @@ class Reconstruction:
     field: np.ndarray | None = None
     colors: np.ndarray | None = None
     calibration: object = None
+    raw_mesh: object = None  # the marching-cubes mesh before organlab.surface.finish_surface
+    aaa: object = None  # organlab.surface.AAAMeasures when measured
 
 
 class _Stages:
@@ -148,24 +153,27 @@ def _carve(sils, cameras, grid, *, hull, tolerance, progress):
 
     if hull == "thesis":
         occupancy, field = carve(sils, cameras, grid, tolerance=tolerance), None
-    else:
-        field = hull_field(sils, cameras, grid, tolerance=tolerance, progress=progress)
-        occupancy = field >= 0.5
+    else:  # the field in a narrow band about the surface: cost grows with the surface, not the volume
+        field = hull_field(sils, cameras, grid, tolerance=tolerance, progress=progress, sparse=True)
+        occupancy = field.occupancy()
     progress(len(cameras), len(cameras))
     return occupancy, field
 
 
-def _surface(occupancy, field, colors, colored, grid, *, progress):
+def _surface(session, occupancy, field, colors, colored, grid, *, finish, measure, progress):
+    """Marching cubes (raw mesh), then the finished surface and the AAA measures (:func:`_finish_and_measure`)."""
     from .surface import color_vertices, mesh_from_field
 
     # after colouring, the surface is the coloured voxel model's: the hull field knows
     # nothing of the voxels colouring carved, and setting them outside in the field
     # moved the surface inward by up to a voxel wherever colouring carved a surface voxel
-    mesh = mesh_from_field(occupancy if (colors is not None or field is None) else field, grid)
+    surface_of = occupancy if (colors is not None or field is None) else field
+    raw = mesh_from_field(surface_of, grid)
     if colors is not None:
-        mesh = color_vertices(mesh, colors, colored, grid)
+        raw = color_vertices(raw, colors, colored, grid)
+    mesh, aaa, extra = _finish_and_measure(session, raw, surface_of, grid, finish, measure)
     progress(1, 1)
-    return mesh
+    return raw, mesh, aaa, extra
 
 
 def reconstruct(
@@ -181,6 +189,8 @@ def reconstruct(
     recalibrate=False,
     progress=None,
     max_memory=None,
+    finish=True,
+    measure=None,
 ):
     """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
 
@@ -221,6 +231,12 @@ def reconstruct(
         Bytes the voxel grid may take (estimated before any work); default the
         memory available now.  Larger grids are refused with the largest voxel
         size that fits (organlab.preflight).
+    finish : bool
+        Repair, smooth and remesh the marching-cubes surface
+        (:func:`organlab.surface.finish_surface`: watertight, manifold, no slivers).
+    measure : bool, optional
+        AAA measurements (:func:`organlab.surface.measure_aaa`); default: when
+        the session says its specimen is an AAA.
 
     Returns
     -------
@@ -249,10 +265,34 @@ def reconstruct(
     if method != "hull":
         res = stages.run("coloring", _color, images, cameras, occupancy, grid, sils, method, color_threshold)
         occupancy, colors, colored = res.occupancy, res.colors, res.colored
-    mesh = stages.run("surface", _surface, occupancy, field, colors, colored, grid)
+    raw_mesh, mesh, aaa, extra = stages.run("surface", _surface, session, occupancy, field, colors, colored, grid,
+                                            finish=finish, measure=measure)
     report = _report(session, grid, occupancy, mesh, cameras, cal, how, sils, stages.timings, method, hull)
+    report.update(extra)
     _add_checks(report, session, grid, mesh, cameras, sils, cal)
-    return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal)
+    return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal, raw_mesh, aaa)
+
+
+def _finish_and_measure(session, mesh, volume, grid, finish, measure):
+    """The finished surface (issue 9) and, for an AAA session or when asked, the AAA measures.
+
+    Returns the surface, the measures (or None) and the report's extra keys.
+    """
+    from .errors import OrganlabError
+    from .surface import finish_surface, is_aaa_session, measure_aaa
+
+    extra, aaa = {"raw_mesh_volume_mm3": mesh.volume}, None
+    if finish:
+        mesh, extra["surface"] = finish_surface(mesh, voxel_size=grid.voxel_size)
+    if measure or (measure is None and is_aaa_session(session)):
+        try:
+            aaa = measure_aaa(volume, grid)
+            extra["aaa"] = aaa.summary()
+        except OrganlabError as e:
+            if measure:  # asked for: an error; automatic: noted in the report
+                raise
+            extra["aaa_error"] = str(e)
+    return mesh, aaa, extra
 
 
 def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory):
@@ -396,6 +436,13 @@ def summary_table(report):
         rows.append(("reference", f"{ref / 1000:.2f} cm3"))
     rows.append(("mesh area", f"{report['mesh_area_mm2'] / 100:.2f} cm2"))
     rows.append(("watertight", "yes" if report["watertight"] else "NO"))
+    if "surface" in report:
+        q = report["surface"]["final"]
+        rows.append(("surface", f"{q['faces']} faces, smallest angle {q['min_angle_deg']:.1f} deg (repaired, remeshed)"))
+    if "aaa" in report:
+        a = report["aaa"]
+        rows.append(("AAA max diameter", f"{a['max_diameter_mm']:.1f} mm at z {a['max_location_mm'][2]:.1f} mm, "
+                     f"sac {a['sac_length_mm']:.0f} mm"))
     source = report.get("calibration", {}).get("source")
     if source:
         rows.append(("calibration", source))

@@ -43,7 +43,7 @@ __all__ = [
 #: Files organlab writes into an output folder; a folder holding only these
 #: (or empty) may be replaced by a new run.
 OUTPUT_NAMES = frozenset(
-    {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "calibration.json", "mesh.png", "agreement.png",
+    {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "calibration.json", "mesh.png", "agreement.png", "surface",
      "worst_view.png"}
 )
 

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import SessionError
 from .session import Session, load_session
 
 __all__ = [
@@ -34,6 +33,7 @@ __all__ = [
     "silhouettes",
     "session_silhouettes",
     "as_arrays",
+    "SilhouetteModel",
 ]
 
 
@@ -64,6 +64,8 @@ def background_model(frames, *, method="median"):
     """
     stack = _stack(frames)
     if method == "median":
+        if stack.dtype == np.uint8:
+            return _median_uint8(stack)
         return np.median(stack, axis=0).astype(np.float32)
     if method == "mean":
         return stack.mean(axis=0, dtype=np.float64).astype(np.float32)
@@ -108,12 +110,15 @@ def difference(image, background, *, mode="color"):
     -------
     diff : (H, W) float32, grey levels
     """
+    if mode not in ("color", "grey"):
+        raise ValueError(f"mode must be 'color' or 'grey', got {mode!r}")
+    fast = _color_distance_uint8(image, background) if mode == "color" else None
+    if fast is not None:
+        return fast
     img = np.asarray(image, dtype=np.float32)
     bg = np.asarray(background, dtype=np.float32)
     if img.shape[:2] != bg.shape[:2]:
         raise ValueError(f"image {img.shape[:2]} and background {bg.shape[:2]} differ in size")
-    if mode not in ("color", "grey"):
-        raise ValueError(f"mode must be 'color' or 'grey', got {mode!r}")
     if img.ndim == 3 and bg.ndim == 2:
         img = _luma(img)
     elif img.ndim == 2 and bg.ndim == 3:
@@ -124,6 +129,25 @@ def difference(image, background, *, mode="color"):
     if d.ndim == 3:
         return (np.sqrt((d * d).sum(axis=2)) / np.sqrt(3.0)).astype(np.float32)
     return np.abs(d)
+
+
+def _median_uint8(stack):
+    """``np.median(stack, axis=0).astype(np.float32)`` of uint8 frames, by a numba kernel (same values)."""
+    from ._silkernels import median_frames
+
+    n = stack.shape[0]
+    return median_frames(np.ascontiguousarray(stack).reshape(n, -1)).reshape(stack.shape[1:])
+
+
+def _color_distance_uint8(image, background):
+    """:func:`difference`'s colour distance by a numba kernel (same values), or None when it does not apply."""
+    img = np.asarray(image)
+    bg = np.asarray(background)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3 or bg.shape != img.shape:
+        return None
+    from ._silkernels import color_distance
+
+    return color_distance(np.ascontiguousarray(img), np.ascontiguousarray(bg, dtype=np.float32))
 
 
 def _luma(rgb):
@@ -201,21 +225,56 @@ def clean_mask(mask, *, open_radius=1, close_radius=2, min_area_fraction=0.05, f
         raise ValueError(f"mask must be 2-D, got shape {m.shape}")
     if open_radius > 0:
         m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disk(open_radius))
+    # everything after the opening happens within the opened mask's box, widened so that
+    # the closing and the hole filling see what they would see in the whole image
+    box = _box(m, 2 * max(int(close_radius), 0) + 2)
+    out = np.zeros(m.shape, dtype=bool)
+    if box is None:
+        return out
+    crop = m[box]
     if close_radius > 0:
-        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(close_radius))
+        crop = cv2.morphologyEx(crop, cv2.MORPH_CLOSE, _disk(close_radius))
+    kept = _keep_components(crop, min_area_fraction)
+    if kept is None:
+        return out
+    out[box] = _fill_holes(kept) if fill_holes else kept
+    return out
+
+
+def _box(mask, margin):
+    """Slices of the box of a mask's non-zero pixels widened by ``margin`` px (None when empty)."""
+    import cv2
+
+    x, y, w, h = cv2.boundingRect(mask)
+    if w == 0 or h == 0:
+        return None
+    H, W = mask.shape
+    return slice(max(y - margin, 0), min(y + h + margin, H)), slice(max(x - margin, 0), min(x + w + margin, W))
+
+
+def _keep_components(m, min_area_fraction):
+    """The 8-connected components of a uint8 mask at least ``min_area_fraction`` of the largest (None if none)."""
+    import cv2
+
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
     if n <= 1:
-        return np.zeros(m.shape, dtype=bool)
+        return None
     areas = stats[1:, cv2.CC_STAT_AREA]
-    keep = np.flatnonzero(areas >= min_area_fraction * areas.max()) + 1
-    out = np.isin(labels, keep)
-    if fill_holes:
-        inv = (~out).astype(np.uint8)
-        _, lab2 = cv2.connectedComponents(inv, connectivity=4)
-        border = np.unique(np.concatenate([lab2[0], lab2[-1], lab2[:, 0], lab2[:, -1]]))
-        holes = ~np.isin(lab2, border) & (inv > 0)
-        out = out | holes
-    return out
+    lut = np.zeros(n, dtype=bool)
+    lut[1:] = areas >= min_area_fraction * areas.max()
+    return lut[labels]
+
+
+def _fill_holes(out):
+    """Fill the background regions (4-connected) that do not touch the border of the array."""
+    import cv2
+
+    inv = (~out).astype(np.uint8)
+    n, lab2 = cv2.connectedComponents(inv, connectivity=4)
+    border = np.zeros(n, dtype=bool)
+    border[lab2[0]] = border[lab2[-1]] = border[lab2[:, 0]] = border[lab2[:, -1]] = True
+    border[0] = True  # label 0: the silhouette itself
+    return out | ~border[lab2]
 
 
 def coverage(image, background, mask, *, window=5):
@@ -242,6 +301,21 @@ def coverage(image, background, mask, *, window=5):
     -------
     (H, W) float32 in [0, 1]
     """
+    image = np.asarray(image)
+    background = np.asarray(background)
+    m8 = np.asarray(mask, dtype=np.uint8)
+    if m8.shape != image.shape[:2]:
+        raise ValueError(f"mask {m8.shape} and image {image.shape[:2]} differ in size")
+    cov = np.zeros(m8.shape, dtype=np.float32)
+    # only the mask's box (widened by the edge band and the window) takes part
+    box = _box(m8, 2 + int(window) // 2 + 1)
+    if box is not None:
+        cov[box] = _coverage_in(image[box], background[box], m8[box], window)
+    return cov
+
+
+def _coverage_in(image, background, m8, window):
+    """:func:`coverage` of a crop whose border lies outside the mask's edge band and window."""
     import cv2
 
     img = np.asarray(image, np.float32)
@@ -253,9 +327,6 @@ def coverage(image, background, mask, *, window=5):
     if img.shape[2] != bg.shape[2]:
         img, bg = _luma(img) if img.shape[2] == 3 else img[..., 0], _luma(bg) if bg.shape[2] == 3 else bg[..., 0]
         img, bg = img[..., None], bg[..., None]
-    m8 = np.asarray(mask, dtype=np.uint8)
-    if m8.shape != img.shape[:2]:
-        raise ValueError(f"mask {m8.shape} and image {img.shape[:2]} differ in size")
     k = np.ones((3, 3), np.uint8)
     inner = cv2.erode(m8, k, borderType=cv2.BORDER_REPLICATE)
     outer = cv2.dilate(m8, k).astype(bool)
@@ -359,33 +430,8 @@ def silhouettes(
     """
     if not isinstance(session, Session):
         session = load_session(session)
-    n = len(session.views)
-    if images is not None and len(images) != n:
-        raise ValueError(f"got {len(images)} images for {n} views")
-    bg = None
-    out = []
-    for i, view in enumerate(session.views):
-        if view.mask is not None:
-            m = session.read(view.mask, key=f"views[{i}].mask", grey=True) > 0
-            out.append(Silhouette(m, m.astype(np.float32), None, "given"))
-        else:
-            if bg is None:
-                frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
-                bg = background_model(frames, method=background)
-                floor = 5.0 * background_noise(frames)
-            img = images[i] if images is not None else session.read(view.image, key=f"views[{i}].image")
-            try:
-                out.append(silhouette(img, bg, threshold=threshold, mode=mode, floor=floor, **clean))
-            except ValueError as e:
-                raise SessionError(f"{session.json_path}: views[{i}] ({session.relpath(view.image)}): {e}") from None
-            if not out[-1].mask.any():
-                raise SessionError(
-                    f"{session.json_path}: views[{i}] ({session.relpath(view.image)}): the silhouette is empty; "
-                    "lower --threshold or check the background frames"
-                )
-        if progress is not None:
-            progress(i + 1, n)
-    return out
+    model = SilhouetteModel.from_session(session, images=images, mode=mode, background=background)
+    return model.silhouettes(threshold=threshold, progress=progress, **clean)
 
 
 #: The name this function had before organlab 0.2; same function.
@@ -406,3 +452,7 @@ def as_arrays(silhouettes, attribute):
     list of (H, W) arrays
     """
     return [getattr(s, attribute) if isinstance(s, Silhouette) else s for s in silhouettes]
+
+
+# the prepared views (re-exported here; their own module keeps this one about the algorithms)
+from ._silmodel import SilhouetteModel  # noqa: E402

@@ -16,8 +16,10 @@ def main(session: Path = SAMPLE, voxel_size: float = 2.0) -> None:
     cal = ol.calibrate(s)
     sils = ol.silhouettes(s, threshold=None)
     grid = ol.VoxelGrid.from_session(s, voxel_size=voxel_size)
-    field = ol.hull_field(sils, cal.cameras(s), grid)  # sub-voxel hull: 0.5 level on the surface
-    mesh = ol.mesh_from_field(field, grid)
+    field = ol.hull_field(sils, cal.cameras(s), grid, sparse=True)  # sub-voxel hull, kept in a band about the surface
+    raw = ol.mesh_from_field(field, grid)  # marching cubes between voxel centres
+    mesh, steps = ol.finish_surface(raw, voxel_size=voxel_size)  # repaired and remeshed for FEA
+    print(f"smallest angle {steps['raw']['min_angle_deg']:.3f} deg -> {steps['final']['min_angle_deg']:.1f} deg")
     m = ol.measure(mesh)
     print(f"grid {grid.shape} at {voxel_size:g} mm; mesh {m['n_faces']} faces, watertight {m['watertight']}")
     print(f"volume {m['volume_mm3']:.0f} mm3, area {m['area_mm2']:.0f} mm2")

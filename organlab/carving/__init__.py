@@ -8,10 +8,15 @@ Public functions are re-exported from private modules:
   summed-area tables (fast);
 * :class:`ProgressiveCarver` -- add views one at a time, keep the current hull;
 * :func:`hull_field` -- a scalar field whose 0.5 level lies on the visual
-  hull's surface, for sub-voxel surfaces.
+  hull's surface, for sub-voxel surfaces; computed in a narrow band around
+  the surface, and kept there with ``sparse=True`` (:class:`BandField`, with
+  ``dense()``, ``occupancy()`` and ``mesh()``);
+* :func:`carving_views` -- the first view that carves each voxel (carve by view).
 """
 
 from ._bbox import ProgressiveCarver, carve, carve_reference
+from ._band import BandField
+from ._by_view import carving_views
 from ._field import hull_field
 
-__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field"]
+__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field", "BandField", "carving_views"]

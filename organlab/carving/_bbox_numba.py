@@ -81,6 +81,20 @@ def _block_range(cp, ax, ay, az, x0, x1, y0, y1, z0, z1):
     Returns (ok, c0, c1, r0, r1) as floats; ok False if undecidable (a corner
     near or behind the camera plane, non-finite values).
     """
+    ok, ul, uh, vl, vh, eu, ev = _block_uv(cp, ax, ay, az, x0, x1, y0, y1, z0, z1)
+    if not ok:
+        return False, 0.0, 0.0, 0.0, 0.0
+    return True, np.ceil(ul - eu - 0.5), np.floor(uh + eu + 0.5), np.ceil(vl - ev - 0.5), np.floor(vh + ev + 0.5)
+
+
+@njit(cache=True)
+def _block_uv(cp, ax, ay, az, x0, x1, y0, y1, z0, z1):
+    """Bounds of the projections (px) of the box with corners [x0, x1] x ... .
+
+    Returns (ok, ul, uh, vl, vh, eu, ev): every point of the box projects
+    within ``[ul - eu, uh + eu] x [vl - ev, vh + ev]``; ok False if
+    undecidable (a corner near or behind the camera plane, non-finite values).
+    """
     xl = np.inf
     xh = -np.inf
     yl = np.inf
@@ -95,7 +109,7 @@ def _block_range(cp, ax, ay, az, x0, x1, y0, y1, z0, z1):
                 xc, yc, zc = to_camera(cp, X, Y, Z)
                 mag = abs(X) + abs(Y) + abs(Z) + cp[22] + 1.0
                 if not zc > 1e-6 * mag:
-                    return False, 0.0, 0.0, 0.0, 0.0
+                    return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 x = xc / zc
                 y = yc / zc
                 xl = min(xl, x)
@@ -142,10 +156,10 @@ def _block_range(cp, ax, ay, az, x0, x1, y0, y1, z0, z1):
     vl += cy
     vh += cy
     if not (ul == ul and uh == uh and vl == vl and vh == vh):
-        return False, 0.0, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     eu = 1e-6 + 1e-9 * (abs(ul) + abs(uh) + abs(ul0) + abs(uh0) + abs(cx))
     ev = 1e-6 + 1e-9 * (abs(vl) + abs(vh) + abs(cy))
-    return True, np.ceil(ul - eu - 0.5), np.floor(uh + eu + 0.5), np.ceil(vl - ev - 0.5), np.floor(vh + ev + 0.5)
+    return True, ul, uh, vl, vh, eu, ev
 
 
 @njit(cache=True, inline="always")

@@ -1,21 +1,21 @@
-"""Surface: marching cubes, mesh measurements and exports.
+"""The triangle mesh type and marching cubes.
 
 The voxel model (or a sub-voxel field, see :func:`organlab.carving.hull_field`)
 becomes a triangle mesh by scikit-image's Lewiner marching cubes, which
 resolves the ambiguous cube configurations so that the surface is closed.
 The volume is padded by one empty voxel so the surface also closes where the
 specimen touches the roi's faces (the trimesh recipe), faces are oriented
-outward, and degenerate faces are not produced.
+outward, and degenerate faces are not produced.  ``method='classic'`` and
+``'decider'`` run the teaching implementation of :mod:`._classic_mc`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vertices", "write_ply", "write_stl", "read_ply"]
+__all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vertices"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,8 +79,11 @@ class Mesh:
         return self.vertices.min(axis=0), self.vertices.max(axis=0)
 
 
-def mesh_from_volume(volume, grid, *, level=0.5):
-    """Closed surface of a voxel model or field by Lewiner marching cubes.
+MC_METHODS = ("lewiner", "decider", "classic")
+
+
+def mesh_from_volume(volume, grid, *, level=0.5, method="lewiner"):
+    """Closed surface of a voxel model or field by marching cubes.
 
     Parameters
     ----------
@@ -91,14 +94,22 @@ def mesh_from_volume(volume, grid, *, level=0.5):
         Where the samples (voxel centres) lie.
     level : float
         Iso-level (0.5 for occupancy and :func:`organlab.carving.hull_field`).
+    method : {'lewiner', 'decider', 'classic'}
+        ``'lewiner'``: scikit-image's (closed, the default); ``'decider'``:
+        the teaching classic marching cubes with the asymptotic decider on
+        ambiguous faces (closed); ``'classic'``: the same with the original
+        table's rule, which leaves holes at disagreeing ambiguous faces.
 
     Returns
     -------
     Mesh
-        World frame, mm, faces oriented outward, no degenerate faces.
+        World frame, mm, faces oriented outward (no degenerate faces for
+        ``'lewiner'``).
     """
     from skimage.measure import marching_cubes
 
+    if method not in MC_METHODS:
+        raise ValueError(f"method must be one of {MC_METHODS}, got {method!r}")
     vol = np.asarray(volume)
     if vol.shape != tuple(grid.shape):
         raise ValueError(f"volume shape {vol.shape} does not match the grid {grid.shape}")
@@ -107,9 +118,15 @@ def mesh_from_volume(volume, grid, *, level=0.5):
         raise ValueError("the volume has nothing above the iso-level: the model is empty")
     padded = np.pad(vol, 1, mode="constant", constant_values=min(0.0, float(vol.min())))
     s = grid.voxel_size
-    verts, faces, _, _ = marching_cubes(
-        padded, level=level, spacing=(s, s, s), method="lewiner", allow_degenerate=False
-    )
+    if method == "lewiner":
+        verts, faces, _, _ = marching_cubes(
+            padded, level=level, spacing=(s, s, s), method="lewiner", allow_degenerate=False
+        )
+    else:
+        from ._classic_mc import classic_marching_cubes
+
+        verts, faces = classic_marching_cubes(padded, level, decider=method == "decider")
+        verts = verts * s
     verts = verts.astype(np.float64) + (np.asarray(grid.origin) - s)
     faces = faces.astype(np.int64)
     mesh = Mesh(verts, faces)
@@ -126,8 +143,10 @@ def mesh_from_field(field, grid):
 
     Parameters
     ----------
-    field : (nx, ny, nz) float32 or bool
-        From :func:`organlab.carving.hull_field` (or an occupancy).
+    field : (nx, ny, nz) float32 or bool, or BandField
+        From :func:`organlab.carving.hull_field` (or an occupancy).  A
+        ``BandField`` (``hull_field(..., sparse=True)``) is meshed on its band
+        only: the same surface as its dense field's, its vertices in another order.
     grid : VoxelGrid
 
     Returns
@@ -135,6 +154,10 @@ def mesh_from_field(field, grid):
     Mesh
         World frame, mm, faces oriented outward.
     """
+    from ..carving import BandField
+
+    if isinstance(field, BandField):
+        return field.mesh()
     return mesh_from_volume(field, grid, level=0.5)
 
 
@@ -194,88 +217,3 @@ def color_vertices(mesh, colors, colored, grid):
     ijk = np.clip(ijk, 0, np.asarray(grid.shape) - 1)
     src = idx[:, ijk[:, 0], ijk[:, 1], ijk[:, 2]]
     return Mesh(mesh.vertices, mesh.faces, np.asarray(colors)[src[0], src[1], src[2]])
-
-
-def write_ply(path, mesh):
-    """Write a binary little-endian PLY (vertex colours when the mesh has them).
-
-    Parameters
-    ----------
-    path : str or Path
-    mesh : Mesh
-    """
-    v = np.asarray(mesh.vertices, dtype="<f4")
-    f = np.asarray(mesh.faces)
-    colors = mesh.vertex_colors
-    header = ["ply", "format binary_little_endian 1.0", "comment organlab mesh, world frame, mm", f"element vertex {len(v)}"]
-    header += ["property float x", "property float y", "property float z"]
-    vdtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if colors is not None:
-        header += ["property uchar red", "property uchar green", "property uchar blue"]
-        vdtype += [("r", "u1"), ("g", "u1"), ("b", "u1")]
-    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
-    vert = np.empty(len(v), dtype=vdtype)
-    vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
-    if colors is not None:
-        c = np.asarray(colors, dtype=np.uint8)
-        vert["r"], vert["g"], vert["b"] = c[:, 0], c[:, 1], c[:, 2]
-    face = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    face["n"] = 3
-    face["i"] = f
-    with open(Path(path), "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(vert.tobytes())
-        fh.write(face.tobytes())
-
-
-def write_stl(path, mesh):
-    """Write a binary STL (world frame, mm).
-
-    Parameters
-    ----------
-    path : str or Path
-    mesh : Mesh
-    """
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    f = np.asarray(mesh.faces)
-    tri = v[f]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
-    rec = np.zeros(len(f), dtype=[("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
-    rec["n"] = n
-    rec["v"] = tri
-    with open(Path(path), "wb") as fh:
-        head = b"organlab mesh, world frame, mm"
-        fh.write(head.ljust(80, b" "))
-        fh.write(np.uint32(len(f)).tobytes())
-        fh.write(rec.tobytes())
-
-
-def read_ply(path):
-    """Read a PLY written by :func:`write_ply` (binary little-endian, triangles).
-
-    Returns
-    -------
-    Mesh
-    """
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    nv = nf = 0
-    has_color = False
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            nv = int(parts[2])
-        elif parts[:2] == ["element", "face"]:
-            nf = int(parts[2])
-        elif parts[:2] == ["property", "uchar"] and parts[2] == "red":
-            has_color = True
-    vdtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("r", "u1"), ("g", "u1"), ("b", "u1")] if has_color else [])
-    vert = np.frombuffer(data, dtype=vdtype, count=nv, offset=end)
-    off = end + vert.nbytes
-    face = np.frombuffer(data, dtype=[("n", "u1"), ("i", "<i4", (3,))], count=nf, offset=off)
-    v = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
-    c = np.stack([vert["r"], vert["g"], vert["b"]], axis=1) if has_color else None
-    return Mesh(v, face["i"].astype(np.int64), c)

@@ -1,0 +1,71 @@
+"""Private numba kernels of :mod:`organlab.silhouette`: the same numbers as the
+numpy expressions they replace, computed in one pass and in parallel.
+
+* :func:`median_frames` -- ``np.median(stack, axis=0).astype(np.float32)`` of
+  uint8 frames (a per-pixel histogram: the median of integers is exact);
+* :func:`color_distance` -- ``difference``'s colour distance,
+  ``float32(float64(sqrt(float32 sum of squares)) / sqrt(3))``, as numpy
+  evaluates it (float32 squares summed left to right, float32 square root).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, parallel=True)
+def median_frames(stack):
+    """Per-pixel median over axis 0 of ``(N, P)`` uint8, as float32 ``(P,)``.
+
+    The middle value (mean of the two middle values for even ``N``) of each
+    pixel's ``N`` values, read from its histogram between its extremes: the
+    median of integers is exact, so this equals
+    ``np.median(stack, axis=0).astype(np.float32)``.
+    """
+    n, p = stack.shape
+    out = np.empty(p, dtype=np.float32)
+    step = 1024
+    lo_rank = (n - 1) // 2
+    hi_rank = n // 2
+    for b in prange((p + step - 1) // step):
+        counts = np.zeros(256, dtype=np.int32)
+        for i in range(b * step, min(p, b * step + step)):
+            vmin = 255
+            vmax = 0
+            for k in range(n):
+                v = stack[k, i]
+                counts[v] += 1
+                vmin = min(vmin, v)
+                vmax = max(vmax, v)
+            # walk the histogram between the pixel's extremes (a few bins: frames differ by noise)
+            seen = 0
+            lo = -1
+            hi = -1
+            for v in range(vmin, vmax + 1):
+                seen += counts[v]
+                counts[v] = 0
+                if lo < 0 and seen > lo_rank:
+                    lo = v
+                if hi < 0 and seen > hi_rank:
+                    hi = v
+            out[i] = np.float32((lo + hi) / 2.0)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def color_distance(img, bg):
+    """``(H, W, 3)`` uint8 image, ``(H, W, 3)`` float32 background -> ``(H, W)`` float32."""
+    h, w, _ = img.shape
+    out = np.empty((h, w), dtype=np.float32)
+    s3 = math.sqrt(3.0)
+    for r in range(h):
+        for c in range(w):
+            d0 = np.float32(img[r, c, 0]) - bg[r, c, 0]
+            d1 = np.float32(img[r, c, 1]) - bg[r, c, 1]
+            d2 = np.float32(img[r, c, 2]) - bg[r, c, 2]
+            s = d0 * d0 + d1 * d1 + d2 * d2
+            out[r, c] = np.float32(np.float64(np.sqrt(s)) / s3)
+    return out

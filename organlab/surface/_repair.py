@@ -1,0 +1,271 @@
+"""Repair, smoothing and isotropic remeshing with pymeshlab.
+
+Facts this relies on (pymeshlab 2025.7): ``meshing_close_holes``'s
+``maxholesize`` counts boundary edges, so it is set from the measured hole
+sizes; ``meshing_repair_non_manifold_edges`` ('Remove Faces') opens new holes,
+so holes are closed and specks dropped after it; isotropic remeshing takes its
+target edge length as ``PureValue(mm)``; it keeps edges sharper than
+``featuredeg`` as features, so the marching-cubes staircase is first relaxed by
+Taubin smoothing (volume-preserving to about 0.1 %).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._mesh import Mesh
+from ._quality import boundary_loops, mesh_quality
+
+
+def _to_ms(mesh):
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f))
+    return ms
+
+
+def _from_ms(ms):
+    m = ms.current_mesh()
+    return Mesh(np.asarray(m.vertex_matrix(), dtype=np.float64), np.asarray(m.face_matrix(), dtype=np.int64))
+
+
+def _oriented(mesh):
+    return mesh if mesh.volume >= 0 else Mesh(mesh.vertices, mesh.faces[:, ::-1].copy())
+
+
+def _step(name, before, after, **extra):
+    qb, qa = mesh_quality(before), mesh_quality(after)
+    vb = qb["volume_mm3"]
+    rec = {
+        "step": name,
+        "faces_before": qb["faces"],
+        "faces_after": qa["faces"],
+        "holes_before": qb["holes"],
+        "holes_after": qa["holes"],
+        "boundary_edges_after": qa["boundary_edges"],
+        "nonmanifold_edges_after": qa["nonmanifold_edges"],
+        "nonmanifold_vertices_after": qa["nonmanifold_vertices"],
+        "volume_change_pct": 100.0 * (qa["volume_mm3"] - vb) / vb if vb else float("nan"),
+        "min_angle_deg": [qb["min_angle_deg"], qa["min_angle_deg"]],
+        "max_aspect_ratio": [qb["max_aspect_ratio"], qa["max_aspect_ratio"]],
+    }
+    rec.update(extra)
+    return rec
+
+
+def _repair_once(ms, speck_mm):
+    import pymeshlab
+
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_duplicate_faces()
+    ms.meshing_remove_null_faces()
+    ms.meshing_repair_non_manifold_edges(method="Remove Faces")
+    ms.meshing_repair_non_manifold_vertices(vertdispratio=0)
+    ms.meshing_remove_unreferenced_vertices()
+    ms.meshing_remove_connected_component_by_diameter(mincomponentdiag=pymeshlab.PureValue(speck_mm))
+    loops = boundary_loops(_from_ms(ms))
+    if loops:
+        # maxholesize counts boundary edges: just above the largest hole
+        ms.meshing_close_holes(maxholesize=int(max(loops)) + 1, newfaceselected=False)
+    try:
+        ms.meshing_re_orient_faces_coherently()
+    except pymeshlab.PyMeshLabException:
+        pass  # still non-manifold: the next round removes more faces first
+    return loops
+
+
+def repair_mesh(mesh, *, speck_mm=3.0, max_rounds=4):
+    """Close holes, remove non-manifold edges and vertices, drop specks.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        World frame, mm.
+    speck_mm : float, mm
+        Connected components whose bounding-box diagonal is below this are removed.
+    max_rounds : int
+        Repair rounds (non-manifold removal opens holes, which the next closes).
+
+    Returns
+    -------
+    Mesh
+        Oriented outward.
+    dict
+        ``holes`` closed (their edge counts), ``faces_removed``, ``rounds``,
+        ``volume_change_pct`` and the quality before and after.
+    """
+    _check_mesh(mesh)
+    ms = _to_ms(mesh)
+    holes = []
+    rounds = 0
+    out = mesh
+    for rounds in range(1, max_rounds + 1):
+        holes += _repair_once(ms, speck_mm)
+        out = _oriented(_from_ms(ms))
+        q = mesh_quality(out)
+        if q["boundary_edges"] == q["nonmanifold_edges"] == q["nonmanifold_vertices"] == 0:
+            break
+    rec = _step("repair", mesh, out, holes_closed=len(holes), hole_edges=holes, rounds=rounds)
+    return out, rec
+
+
+def smooth_mesh(mesh, *, iterations=10, lambda_=0.5, mu=-0.53):
+    """Taubin smoothing (shrink-free): relaxes the marching-cubes staircase.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    iterations : int
+    lambda_, mu : float
+        Taubin's positive and negative steps.
+
+    Returns
+    -------
+    Mesh, dict
+    """
+    _check_mesh(mesh)
+    ms = _to_ms(mesh)
+    ms.apply_coord_taubin_smoothing(lambda_=lambda_, mu=mu, stepsmoothnum=int(iterations))
+    out = _oriented(_from_ms(ms))
+    return out, _step("smooth", mesh, out, iterations=int(iterations))
+
+
+def remesh_mesh(mesh, target_mm, *, iterations=10, feature_deg=60.0, min_angle=20.0, max_passes=3):
+    """Isotropic explicit remeshing to edges of about ``target_mm``.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Closed, manifold (run :func:`repair_mesh` first).
+    target_mm : float, mm
+        Target edge length (``PureValue``, not a percentage of the bounding box).
+    iterations : int
+        Remeshing iterations per pass.
+    feature_deg : float, degrees
+        Dihedral angles sharper than this are kept as feature edges.
+    min_angle : float, degrees
+        Further passes run while the smallest angle is below this.
+    max_passes : int
+
+    Returns
+    -------
+    Mesh, dict
+    """
+    import pymeshlab
+
+    _check_mesh(mesh)
+    if not target_mm > 0:
+        raise ValueError(f"remesh target edge length must be > 0 mm, got {target_mm}")
+    ms = _to_ms(mesh)
+    passes = 0
+    for passes in range(1, max_passes + 1):
+        ms.meshing_isotropic_explicit_remeshing(
+            targetlen=pymeshlab.PureValue(float(target_mm)), iterations=int(iterations), featuredeg=float(feature_deg)
+        )
+        if mesh_quality(_from_ms(ms))["min_angle_deg"] >= min_angle:
+            break
+    out = _oriented(_from_ms(ms))
+    return out, _step("remesh", mesh, out, target_mm=float(target_mm), passes=passes)
+
+
+def _restore_volume(mesh, volume):
+    """Offset the vertices along their normals so that the enclosed volume is ``volume``.
+
+    Remeshing with longer edges cuts chords inside convex parts (-0.15 % at
+    1.5 mm on the sample, -0.5 % at 3 mm); a uniform normal offset of
+    ``(volume - V) / area`` (hundredths of a mm) gives the volume back
+    without changing the triangles' shapes.
+    """
+    from ._voronoi import vertex_normals
+
+    out = mesh
+    for _ in range(3):
+        gap = volume - out.volume
+        if abs(gap) <= 1e-6 * abs(volume):
+            break
+        out = Mesh(out.vertices + (gap / out.area) * vertex_normals(out), out.faces)
+    return out
+
+
+def _check_mesh(mesh):
+    from ..errors import OrganlabError
+
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"expected an organlab.surface.Mesh, got {type(mesh).__name__}")
+    if len(mesh.faces) == 0:
+        raise OrganlabError("the mesh has no faces: nothing to repair (is the model empty?)")
+
+
+def finish_surface(
+    mesh, *, voxel_size, repair=True, smooth=True, remesh="auto", feature_deg=60.0, min_angle=20.0, keep_volume=True
+):
+    """A repaired, watertight, manifold surface fit for finite-element meshing.
+
+    Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and
+    :func:`remesh_mesh` (isotropic) in that order, then a last repair when the
+    remeshing left a defect.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        E.g. the marching-cubes mesh of :func:`mesh_from_volume`; world frame, mm.
+    voxel_size : float, mm
+        Voxel edge of the model the mesh came from: scales the defaults.
+    repair, smooth : bool
+    remesh : 'auto' or float or None
+        Target edge length, mm (``'auto'``: 1.5 voxels; ``None``: no remeshing).
+    feature_deg, min_angle : float, degrees
+        See :func:`remesh_mesh`.
+    keep_volume : bool
+        After remeshing, offset the surface along its normals (by hundredths
+        of a mm) so that it encloses the input mesh's volume again.
+
+    Returns
+    -------
+    Mesh
+        The finished surface, oriented outward.
+    dict
+        ``steps`` (what each step changed), ``raw`` and ``final`` quality
+        (:func:`mesh_quality`), ``watertight``, ``volume_change_pct``.
+    """
+    if not (isinstance(voxel_size, (int, float)) and voxel_size > 0):
+        raise ValueError(f"voxel_size must be a positive number of mm, got {voxel_size!r}")
+    if remesh == "auto":
+        remesh = 1.5 * float(voxel_size)
+    out, steps = mesh, []
+    if repair:
+        out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
+        steps.append(rec)
+    if smooth:
+        out, rec = smooth_mesh(out)
+        steps.append(rec)
+    if remesh is not None:
+        before = out
+        out, rec = remesh_mesh(out, float(remesh), feature_deg=feature_deg, min_angle=min_angle)
+        if keep_volume:
+            remeshed = out
+            out = _restore_volume(remeshed, before.volume)
+            rec["normal_offset_mm"] = (before.volume - remeshed.volume) / remeshed.area
+            rec["volume_change_pct"] = 100.0 * (out.volume - before.volume) / before.volume
+        steps.append(rec)
+        q = mesh_quality(out)
+        if repair and (q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]):
+            out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
+            steps.append(rec)
+    raw, final = mesh_quality(mesh), mesh_quality(out)
+    report = {
+        "steps": steps,
+        "raw": raw,
+        "final": final,
+        "watertight": bool(out.is_watertight and final["nonmanifold_vertices"] == 0),
+        "volume_change_pct": 100.0 * (final["volume_mm3"] - raw["volume_mm3"]) / raw["volume_mm3"],
+    }
+    if mesh.vertex_colors is not None:
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(mesh.vertices).query(out.vertices)
+        out = Mesh(out.vertices, out.faces, np.asarray(mesh.vertex_colors)[idx])
+    return out, report

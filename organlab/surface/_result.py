@@ -1,0 +1,160 @@
+"""The ``organlab mesh`` steps on a result folder, and the AAA picture.
+
+:func:`mesh_result` reads ``voxels.npz`` written by
+:func:`organlab.pipeline.write_outputs`, makes the marching-cubes surface and
+runs the requested steps; the CLI only calls it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ._mesh import mesh_from_volume
+
+
+def is_aaa_session(session):
+    """True when a session says its specimen is an abdominal aortic aneurysm.
+
+    ``session.json``'s ``reference.specimen`` (or ``specimen``) is ``"aaa"``,
+    or, for a synthetic session, its ``truth.json`` names the ``aaa`` phantom.
+    """
+    raw = getattr(session, "raw", {}) or {}
+    for where in (session.reference, raw):
+        if str(where.get("specimen", "")).lower() == "aaa":
+            return True
+    truth = (raw.get("synthetic") or {}).get("truth")
+    if truth:
+        p = Path(session.root) / truth
+        try:
+            return json.loads(p.read_text()).get("specimen") == "aaa"
+        except (OSError, ValueError):
+            return False
+    return False
+
+
+def load_voxels(result_dir):
+    """The surface volume and grid of a result folder's ``voxels.npz``.
+
+    Returns
+    -------
+    volume : (nx, ny, nz) float32
+        The sub-voxel field when saved, else the occupancy as 0/1.
+    grid : VoxelGrid
+    """
+    from ..errors import OrganlabError
+    from ..grid import VoxelGrid
+
+    path = Path(result_dir) / "voxels.npz"
+    if not path.is_file():
+        raise OrganlabError(f"{path}: not found; run 'organlab reconstruct SESSION --out {result_dir}' first")
+    with np.load(path, allow_pickle=False) as z:
+        try:
+            occ = z["occupancy"]
+            vol = z["field"] if "field" in z.files and "colors" not in z.files else occ
+            grid = VoxelGrid(z["origin_mm"], float(z["voxel_size_mm"]), occ.shape)
+        except KeyError as e:
+            raise OrganlabError(f"{path}: missing array {e}; rewrite it with 'organlab reconstruct'") from None
+    return np.asarray(vol, dtype=np.float32), grid
+
+
+def mesh_result(result_dir, *, repair=True, smooth=True, remesh="auto", tetra=False, measure=False, picture=False):
+    """Finish the surface of a reconstruction folder and write it (``DIR/surface/``).
+
+    Parameters
+    ----------
+    result_dir : str or Path
+        Output folder of ``organlab reconstruct`` (holds ``voxels.npz``).
+    repair, smooth : bool
+    remesh : 'auto', float (mm) or None
+    tetra : bool
+        Also write a tetrahedral mesh as ``tetra.vtu``, ``.msh``, ``.inp``, ``.xdmf``.
+    measure : bool
+        AAA measurements to ``aaa.json`` (and ``aaa_measures.png`` with ``picture``).
+    picture : bool
+
+    Returns
+    -------
+    report : dict
+    paths : dict of str -> Path
+    """
+    from ..session import write_json
+    from ._io import write_obj, write_ply, write_stl, write_vtk
+    from ._repair import finish_surface
+
+    vol, grid = load_voxels(result_dir)
+    out = Path(result_dir) / "surface"
+    out.mkdir(parents=True, exist_ok=True)
+    raw = mesh_from_volume(vol, grid, level=0.5)
+    mesh, report = finish_surface(raw, voxel_size=grid.voxel_size, repair=repair, smooth=smooth, remesh=remesh)
+    paths = {}
+    for name, writer in (("ply", write_ply), ("stl", write_stl), ("obj", write_obj), ("vtu", write_vtk)):
+        paths[name] = out / f"mesh.{name}"
+        writer(paths[name], mesh)
+    if tetra:
+        from ._tetra import TETRA_FORMATS, tetrahedralize, write_tetra
+
+        tm, report["tetra"] = tetrahedralize(mesh)
+        for ext in TETRA_FORMATS:
+            paths[f"tetra_{ext}"] = write_tetra(out / f"tetra.{ext}", tm)
+    if measure:
+        from ._aaa import measure_aaa
+
+        m = measure_aaa(vol, grid)
+        report["aaa"] = m.summary()
+        paths["aaa"] = out / "aaa.json"
+        write_json(paths["aaa"], {**m.summary(), "centreline_mm": m.centreline.tolist(),
+                                  "feret_mm": m.feret_mm.tolist(), "equivalent_mm": m.equivalent_mm.tolist()})
+        if picture:
+            paths["aaa_picture"] = aaa_picture(mesh, m, out / "aaa_measures.png")
+    paths["report"] = out / "surface_report.json"
+    write_json(paths["report"], report)
+    return report, paths
+
+
+def aaa_picture(mesh, measures, path, *, window_size=(900, 900)):
+    """The mesh (translucent) with its centreline and the maximum-diameter section, off-screen (pyvista, EGL).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    measures : AAAMeasures
+    path : str or Path
+        PNG to write.
+
+    Returns
+    -------
+    Path
+    """
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista as pv
+
+    faces = np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel()
+    poly = pv.PolyData(np.asarray(mesh.vertices, dtype=np.float64), faces)
+    p = pv.Plotter(off_screen=True, window_size=tuple(window_size))
+    p.set_background("white")
+    p.add_mesh(poly, color="#d98c7a", opacity=0.35, smooth_shading=True)
+    p.add_mesh(pv.lines_from_points(measures.centreline), color="#1f4e9c", line_width=5)
+    sec = np.vstack([measures.max_section, measures.max_section[:1]])
+    p.add_mesh(pv.lines_from_points(sec), color="#c0102a", line_width=6)
+    p.add_mesh(pv.PolyData(measures.max_location_mm[None]), color="#c0102a", point_size=14, render_points_as_spheres=True)
+    s = measures.summary()
+    p.add_text(
+        f"max diameter {s['max_diameter_mm']:.1f} mm (equivalent {s['max_equivalent_diameter_mm']:.1f} mm)\n"
+        f"at z = {s['max_location_mm'][2]:.1f} mm, {s['max_arc_mm']:.0f} mm along the centreline\n"
+        f"neck {s['neck_diameter_mm']:.1f} mm, sac {s['sac_length_mm']:.0f} mm long, {s['sac_volume_mm3'] / 1000:.1f} cm3",
+        position="upper_left", font_size=11, color="black",
+    )
+    lo, hi = mesh.bounds
+    center = (lo + hi) / 2
+    dist = 1.1 * float(np.linalg.norm(hi - lo)) / 2 / np.tan(np.deg2rad(15.0))
+    el, az = np.deg2rad(22.0), np.deg2rad(-70.0)
+    eye = center + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    p.camera_position = [tuple(eye), tuple(center), (0, 0, 1)]
+    path = Path(path)
+    p.screenshot(str(path))
+    p.close()
+    return path

@@ -1,0 +1,23 @@
+"""A live 3D viewer in the browser (viser): watch the hull grow, tune it by hand.
+
+* :class:`LiveView` -- a scene that carving and capture stream partial results
+  to (``add_view(image, camera, silhouette)``, ``set_voxels``, ``set_mesh``);
+* :class:`SessionViewer` -- a session with its reconstruction and the controls
+  that re-run it (``organlab view SESSION``).
+
+viser is imported only when one of them is used.
+"""
+
+__all__ = ["LiveView", "SessionViewer", "Settings"]
+
+
+def __getattr__(name):
+    if name == "LiveView":
+        from ._live import LiveView
+
+        return LiveView
+    if name in ("SessionViewer", "Settings"):
+        from . import _app
+
+        return getattr(_app, name)
+    raise AttributeError(f"module 'organlab.viewer' has no attribute {name!r}")

@@ -1,0 +1,372 @@
+"""The session viewer: a session's views, its reconstruction, re-run live.
+
+:class:`SessionViewer` loads a session, shows it in a :class:`LiveView`, and
+recomputes in a worker thread whenever a control changes, streaming each
+stage's result (voxels first, then the mesh, measurements and agreement).  It
+only calls stage functions (silhouette, carving, coloring, surface).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import _scene
+from ._live import LiveView
+from ._worker import LatestWorker
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """What a re-run depends on (the GUI's controls).
+
+    threshold : float or None -- grey levels for every view; None = automatic per view
+    voxel_size : float, mm
+    method : {'hull', 'coloring', 'space_carving'}
+    hull : {'subvoxel', 'thesis'}
+    color_threshold : float or None
+    tolerance : int
+    roi : ((3,), (3,)) tuple of float, mm
+    """
+
+    threshold: float | None = None
+    voxel_size: float = 1.0
+    method: str = "hull"
+    hull: str = "subvoxel"
+    color_threshold: float | None = None
+    tolerance: int = 0
+    roi: tuple = ((-70.0, -70.0, 0.0), (70.0, 70.0, 200.0))
+
+
+@dataclasses.dataclass
+class Result:
+    """The newest finished reconstruction shown."""
+
+    settings: Settings
+    grid: object
+    occupancy: np.ndarray
+    mesh: object
+    masks: list
+    colors: np.ndarray | None = None
+    agreement: np.ndarray | None = None
+    n_surface_voxels: int = 0
+    seconds: float = 0.0
+    generation: int = 0
+    views: np.ndarray | None = None  # carving_views, computed on demand
+    timings: dict = dataclasses.field(default_factory=dict)  # seconds per stage
+
+
+def _load_cameras(session):
+    """Cameras of a session: given, its matching calibration.json, or calibrated now (nothing written)."""
+    from ..pipeline import session_cameras
+
+    return session_cameras(session)
+
+
+class SessionViewer:
+    """A live viewer of one session (``organlab view``).
+
+    Parameters
+    ----------
+    session : Session or str or Path
+    result : str or Path, optional
+        A folder written by ``organlab reconstruct`` (``voxels.npz``,
+        ``mesh.ply``, ``report.json``) shown instead of reconstructing at start.
+    voxel_size : float, mm
+        Voxel size of the first reconstruction.
+    views : sequence of int, optional
+        Use only these views (e.g. every third one, for a quick look).
+    host, port : as :class:`LiveView`
+    stream : bool
+        Carve view by view at start, updating the scene after each view.
+
+    Attributes
+    ----------
+    live : LiveView
+    result : Result or None
+    worker : LatestWorker
+    """
+
+    def __init__(self, session, *, result=None, voxel_size=1.0, views=None, host="127.0.0.1", port=8080,
+                 stream=True, verbose=False):
+        from ..session import Session, load_session
+
+        self.session = session if isinstance(session, Session) else load_session(session)
+        s = self.session
+        if not s.views:
+            from ..errors import SessionError
+
+            raise SessionError(f"{s.json_path}: views: the session has no views to show")
+        cams = _load_cameras(s)
+        keep = list(range(len(s.views))) if views is None else [int(i) for i in views]
+        self.view_ids = keep
+        self.cameras = [cams[i] for i in keep]
+        self.images = [s.read(s.views[i].image, key=f"views[{i}].image") for i in keep]
+        self._prepare_silhouettes()
+        roi = (tuple(map(float, s.roi_min)), tuple(map(float, s.roi_max)))
+        self.settings = Settings(voxel_size=float(voxel_size), roi=roi)
+        self.result = None
+        self.status = "starting"
+        self.errors = []
+        self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}")
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="organlab-viewer-silhouettes")
+        self.worker = LatestWorker(self._job, on_error=self._error)
+        from ._gui import Controls
+
+        self.controls = Controls(self)
+        if result is not None:
+            self._show_result_folder(Path(result))
+        else:
+            self.worker.submit(("stream" if stream else "run", self.settings))
+
+    # ------------------------------------------------------------ silhouettes
+    def _prepare_silhouettes(self):
+        """Cache what does not depend on the threshold: background model and difference images."""
+        from .. import silhouette as sil
+
+        s = self.session
+        self._given = {}
+        self._diffs = {}
+        need = [j for j, i in enumerate(self.view_ids) if s.views[i].mask is None]
+        for j, i in enumerate(self.view_ids):
+            if s.views[i].mask is not None:
+                m = s.read(s.views[i].mask, key=f"views[{i}].mask", grey=True) > 0
+                self._given[j] = m
+        self.auto_thresholds = [None] * len(self.view_ids)
+        if need:
+            frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
+            self._bg = sil.background_model(frames)
+            floor = 5.0 * sil.background_noise(frames)
+            for j in need:
+                d = sil.difference(self.images[j], self._bg)
+                self._diffs[j] = d
+                self.auto_thresholds[j] = sil.auto_threshold(d, floor=floor)
+        autos = [t for t in self.auto_thresholds if t is not None]
+        self.auto_threshold = float(np.median(autos)) if autos else None
+        self._sil_cache = {}
+
+    def silhouette(self, j, threshold=None):
+        """Mask and coverage of view ``j`` at a threshold (None: its automatic one).
+
+        Returns
+        -------
+        mask : (H, W) bool
+        coverage : (H, W) float32
+        """
+        from .. import silhouette as sil
+
+        if j in self._given:
+            m = self._given[j]
+            return m, m.astype(np.float32)
+        t = self.auto_thresholds[j] if threshold is None else float(threshold)
+        key = (j, round(t, 4))
+        hit = self._sil_cache.get(key)
+        if hit is None:
+            mask = sil.clean_mask(self._diffs[j] > t)
+            hit = (mask, sil.coverage(self.images[j], self._bg, mask))
+            if len(self._sil_cache) > 4 * len(self.view_ids):
+                self._sil_cache.clear()
+            self._sil_cache[key] = hit
+        return hit
+
+    # ------------------------------------------------------------ jobs
+    def rerun(self, **changes):
+        """Re-run with changed settings (any field of :class:`Settings`); returns the generation."""
+        self.settings = dataclasses.replace(self.settings, **changes)
+        return self.worker.submit(("run", self.settings))
+
+    def wait(self, generation=None, timeout=120.0):
+        """Wait until a re-run (default: the newest) is shown."""
+        return self.worker.wait(generation, timeout)
+
+    def _error(self, exc, tb):
+        self.errors.append(tb)
+        self.status = f"error: {exc}"
+        self.controls.show_status(self.status)
+
+    def _job(self, gen, request, check):
+        kind, st = request
+        t0 = time.perf_counter()
+        from .. import carving
+        from ..grid import VoxelGrid
+
+        grid = VoxelGrid.from_roi(st.roi[0], st.roi[1], st.voxel_size)
+        self.status = f"run {gen}: silhouettes"
+        self.controls.show_status(self.status)
+        tm = {}
+        masks, covs = [], []
+        # OpenCV releases the GIL: re-threshold the views on two threads
+        for m, c in self._pool.map(lambda j: self.silhouette(j, st.threshold), range(len(self.cameras))):
+            masks.append(m)
+            covs.append(c)
+        check()
+        tm["silhouettes"] = time.perf_counter() - t0
+        if kind == "stream":
+            self._stream(grid, st, masks, check)
+        self.status = f"run {gen}: carving"
+        t1 = time.perf_counter()
+        if st.hull == "thesis":
+            occ = carving.carve(masks, self.cameras, grid, tolerance=st.tolerance)
+            field = None
+        else:
+            field = carving.hull_field(covs, self.cameras, grid, tolerance=st.tolerance, progress=lambda d, n: check(),
+                                       sparse=True)  # in a narrow band: cost grows with the surface
+            occ = field.occupancy()
+        check()
+        if not occ.any():
+            raise ValueError("carving left no voxel: lower the threshold, raise the tolerance or widen the roi")
+        tm["carving"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        shown = self.controls.show_voxels or "mesh" not in self.live._handles
+        n_surf = self.live.set_voxels(occ, grid, visible=shown)
+        colors = colored = None
+        if st.method != "hull":
+            occ, colors, colored = self._color(occ, grid, masks, st, check)
+            field = None
+            n_surf = self.live.set_voxels(occ, grid, colors, visible=shown)
+        tm["voxels sent"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        mesh = self._mesh(occ, field, colors, colored, grid)
+        tm["mesh"] = time.perf_counter() - t1
+        check()
+        self.live.set_mesh(mesh, visible=self.controls.show_mesh)
+        self.live.set_visible("voxels", self.controls.show_voxels)
+        tm["scene updated"] = time.perf_counter() - t0  # voxels and mesh queued for the browser
+        res = Result(st, grid, occ, mesh, masks, colors, None, n_surf, 0.0, gen)
+        t1 = time.perf_counter()
+        res.agreement = self._agreement(mesh, masks)
+        tm["agreement"] = time.perf_counter() - t1
+        res.seconds = time.perf_counter() - t0
+        res.timings = tm
+        check()
+        self.result = res
+        self.status = f"run {gen}: done in {res.seconds:.2f} s"
+        self.controls.show_result(res)
+
+    def _stream(self, grid, st, masks, check):
+        """Carve view by view, showing each view and the hull so far (start-up)."""
+        from ..carving import ProgressiveCarver
+
+        carver = ProgressiveCarver(grid, tolerance=st.tolerance)
+        last = 0.0
+        for j, (img, cam, m) in enumerate(zip(self.images, self.cameras, masks)):
+            if j >= len(self.live.cameras):
+                self.live.add_view(img, cam, m)
+            occ = carver.add_view(m, cam)
+            now = time.perf_counter()
+            if now - last > 0.1 or j == len(masks) - 1:  # at most ~10 updates/s
+                self.live.set_voxels(occ, grid)
+                last = now
+            self.status = f"streaming: view {j + 1}/{len(masks)}"
+            self.controls.show_status(self.status)
+            check()
+        self.controls.views_added()
+
+    def _color(self, occ, grid, masks, st, check):
+        from .. import coloring
+
+        kw = {} if st.color_threshold is None else {"threshold": st.color_threshold}
+        kind = "voxel_coloring" if st.method == "coloring" else "space_carving"
+        res = coloring.color_voxels(self.images, self.cameras, occ, grid, method=kind, masks=masks,
+                                    progress=lambda d, n: check(), **kw)
+        return res.occupancy, res.colors, res.colored
+
+    @staticmethod
+    def _mesh(occ, field, colors, colored, grid):
+        from ..surface import color_vertices, mesh_from_field
+
+        # after colouring, the surface is the coloured voxel model's (as organlab.pipeline does)
+        mesh = mesh_from_field(field if field is not None else occ, grid)
+        if colors is not None:
+            mesh = color_vertices(mesh, colors, colored, grid)
+        return mesh
+
+    def _agreement(self, mesh, masks):
+        from ._agreement import view_agreement
+
+        return view_agreement(mesh, self.cameras, masks)
+
+    def carving_views(self):
+        """Carve-by-view of the shown result (computed once per result), grid.shape int16."""
+        from ..carving import carving_views
+
+        res = self.result
+        if res is None:
+            return None
+        if res.views is None:
+            res.views = carving_views(res.masks, self.cameras, res.grid)
+        return res.views
+
+    def hull_in_view(self, j):
+        """The shown mesh projected into view ``j``, (H, W) bool, or None."""
+        from ._agreement import hull_mask
+
+        return None if self.result is None else hull_mask(self.result.mesh, self.cameras[j])
+
+    # ------------------------------------------------------------ --result
+    def _show_result_folder(self, folder):
+        from ..errors import SessionError
+        from ..grid import VoxelGrid
+        from ..surface import read_ply
+
+        vox, ply, rep = folder / "voxels.npz", folder / "mesh.ply", folder / "report.json"
+        for p in (vox, ply):
+            if not p.is_file():
+                raise SessionError(f"{p}: missing; run 'organlab reconstruct {self.session.root} --out {folder}' first")
+        with np.load(vox, allow_pickle=False) as z:
+            occ = z["occupancy"].astype(bool)
+            origin, vs = z["origin_mm"], float(z["voxel_size_mm"])
+            colors = z["colors"] if "colors" in z.files else None
+        grid = VoxelGrid(tuple(origin), vs, occ.shape)
+        mesh = read_ply(ply)
+        report = json.loads(rep.read_text()) if rep.is_file() else {}
+        thresholds = [v.get("silhouette_threshold") for v in report.get("views", [])]
+        masks = []
+        for j, (img, cam) in enumerate(zip(self.images, self.cameras)):
+            i = self.view_ids[j]
+            t = thresholds[i] if i < len(thresholds) else None
+            m, _ = self.silhouette(j, t)
+            masks.append(m)
+            self.live.add_view(img, cam, m)
+        self.controls.views_added()
+        lo, hi = grid.bounds
+        st = dataclasses.replace(self.settings, voxel_size=vs, method=report.get("method", "hull"),
+                                 hull=report.get("hull", "subvoxel"), roi=(tuple(lo), tuple(hi)))
+        self.settings = st
+        n = self.live.set_voxels(occ, grid, colors)
+        self.live.set_mesh(mesh, visible=self.controls.show_mesh)
+        self.live.set_visible("voxels", self.controls.show_voxels)
+        res = Result(st, grid, occ, mesh, masks, colors, self._agreement(mesh, masks), n, 0.0, 0)
+        self.result = res
+        self.status = f"result loaded from {folder}"
+        self.controls.show_result(res)
+
+    # ------------------------------------------------------------ lifetime
+    @property
+    def url(self):
+        return self.live.url
+
+    def iframe(self, **kw):
+        """The viewer embedded in a notebook cell (``IPython.display.IFrame``)."""
+        return self.live.iframe(**kw)
+
+    def _repr_html_(self):
+        return self.live._repr_html_()
+
+    def stop(self):
+        """Stop the worker and the server (frees the port)."""
+        self.worker.stop()
+        self._pool.shutdown(wait=True)
+        self.live.stop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()

@@ -1,0 +1,286 @@
+"""The viewer's GUI panel: controls that re-run, read-outs, views, carve by view, roi."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from . import _scene
+
+METHODS = ("hull", "coloring", "space_carving")
+HULLS = ("subvoxel", "thesis")
+
+
+class Controls:
+    """Build the GUI of a :class:`SessionViewer` and wire its callbacks."""
+
+    def __init__(self, app):
+        from ..coloring import DEFAULT_THRESHOLD
+
+        self.app = app
+        self.live = app.live
+        gui = app.live.server.gui
+        self.gui = gui
+        self._lock = threading.Lock()
+        st = app.settings
+        auto = app.auto_threshold
+        n = len(app.cameras)
+
+        with gui.add_folder("Reconstruction"):
+            self.status = gui.add_markdown("*starting*")
+            t0 = round(auto * 2) / 2 if auto is not None else 20.0
+            self.threshold = gui.add_slider(
+                "Threshold", min=1.0, max=80.0, step=0.5, initial_value=t0,
+                marks=((t0, "auto"),) if auto is not None else None, disabled=auto is None,
+                hint="silhouette threshold, grey levels (the mark: median of the automatic per-view values)",
+            )
+            self.auto = gui.add_checkbox("Automatic threshold", initial_value=True, disabled=auto is None,
+                                         hint="Li's automatic threshold, per view")
+            self.voxel = gui.add_slider("Voxel size (mm)", min=0.5, max=5.0, step=0.5, initial_value=st.voxel_size)
+            self.method = gui.add_dropdown("Method", METHODS, initial_value=st.method)
+            self.hull = gui.add_dropdown("Hull", HULLS, initial_value=st.hull)
+            self.color_threshold = gui.add_slider("Colour threshold", min=2.0, max=60.0, step=1.0,
+                                                  initial_value=float(DEFAULT_THRESHOLD), disabled=True)
+            self.tolerance = gui.add_slider("Tolerance (views)", min=0, max=min(5, n - 1), step=1, initial_value=0)
+            self.rerun_button = gui.add_button("Re-run")
+        with gui.add_folder("Measurements"):
+            self.measure = gui.add_markdown("*no result yet*")
+        with gui.add_folder("Views"):
+            self.view = gui.add_slider("View", min=0, max=max(n - 1, 1), step=1, initial_value=0)
+            self.look = gui.add_button("Look through camera")
+            self.leave = gui.add_button("Leave camera view")
+            self.view_info = gui.add_markdown("")
+            self.view_image = gui.add_image(np.zeros((48, 64, 3), np.uint8), label="photo, silhouette, hull")
+        with gui.add_folder("Carve by view", expand_by_default=False):
+            self.carve_show = gui.add_checkbox("Show carved space", initial_value=False)
+            self.carve_step = gui.add_slider("Step (-1: all views)", min=-1, max=max(n - 1, 0), step=1, initial_value=-1)
+            self.carve_info = gui.add_markdown("")
+        with gui.add_folder("Region of interest", expand_by_default=False):
+            self.roi_edit = gui.add_checkbox("Edit roi (drag the gizmo)", initial_value=False)
+            lo, hi = (np.asarray(v, float) for v in st.roi)
+            self.roi_size = gui.add_vector3("Size (mm)", initial_value=tuple(hi - lo), min=(1.0, 1.0, 1.0), step=1.0)
+            self.roi_info = gui.add_markdown("")
+            self.roi_apply = gui.add_button("Apply roi and re-run")
+        with gui.add_folder("Display"):
+            self.model = gui.add_dropdown("Model", ("mesh", "voxels", "mesh + voxels"), initial_value="mesh",
+                                          hint="the carved surface voxels, the mesh, or both")
+            self.show_views_box = gui.add_checkbox("Cameras", initial_value=True)
+        self._roi_box = None
+        self._roi_gizmo = None
+        self._roi_centre = (lo + hi) / 2
+        self._update_roi_info()
+        self._wire()
+
+    # ------------------------------------------------------------ wiring
+    @property
+    def show_mesh(self):
+        return "mesh" in self.model.value
+
+    @property
+    def show_voxels(self):
+        return "voxels" in self.model.value
+
+    def _settings_changed(self, **changes):
+        self.app.rerun(**changes)
+
+    def _wire(self):
+        app = self.app
+
+        @self.threshold.on_update
+        def _(_e):
+            self.auto.value = False
+            self._settings_changed(threshold=float(self.threshold.value))
+
+        @self.auto.on_update
+        def _(_e):
+            self._settings_changed(threshold=None if self.auto.value else float(self.threshold.value))
+
+        @self.voxel.on_update
+        def _(_e):
+            self._update_roi_info()
+            self._settings_changed(voxel_size=float(self.voxel.value))
+
+        @self.method.on_update
+        def _(_e):
+            self.color_threshold.disabled = self.method.value == "hull"
+            self._settings_changed(method=self.method.value)
+
+        @self.hull.on_update
+        def _(_e):
+            self._settings_changed(hull=self.hull.value)
+
+        @self.color_threshold.on_update
+        def _(_e):
+            self._settings_changed(color_threshold=float(self.color_threshold.value))
+
+        @self.tolerance.on_update
+        def _(_e):
+            self._update_roi_info()
+            self._settings_changed(tolerance=int(self.tolerance.value))
+
+        @self.rerun_button.on_click
+        def _(_e):
+            app.rerun()
+
+        self._wire_views()
+
+    def _wire_views(self):
+        @self.view.on_update
+        def _(_e):
+            self.select(int(self.view.value))
+
+        @self.look.on_click
+        def _(e):
+            self.look_through(int(self.view.value), e.client)
+
+        @self.leave.on_click
+        def _(_e):
+            self.live.hide_look()
+
+        @self.live.on_view_click
+        def _(i, client):
+            self.view.value = i  # fires select()
+            self.look_through(i, client)
+
+        @self.carve_show.on_update
+        def _(_e):
+            self._carve_display()
+
+        @self.carve_step.on_update
+        def _(_e):
+            if self.carve_show.value:
+                self._carve_display()
+
+        @self.roi_edit.on_update
+        def _(_e):
+            self._roi_gizmo_toggle(self.roi_edit.value)
+
+        @self.roi_size.on_update
+        def _(_e):
+            self._update_roi_box()
+
+        @self.roi_apply.on_click
+        def _(_e):
+            lo, hi = self.roi()
+            self._settings_changed(roi=(tuple(lo), tuple(hi)))
+
+        @self.model.on_update
+        def _(_e):
+            self.live.set_visible("mesh", self.show_mesh)
+            self.live.set_visible("voxels", self.show_voxels)
+
+        @self.show_views_box.on_update
+        def _(_e):
+            self.live.set_visible("views", bool(self.show_views_box.value))
+
+    # ------------------------------------------------------------ read-outs
+    def show_status(self, text):
+        self.status.content = f"*{text}*"
+
+    def views_added(self):
+        self.select(int(self.view.value))
+
+    def show_result(self, res):
+        mesh = res.mesh
+        vol = res.grid.volume_of(res.occupancy)
+        ag = res.agreement
+        lines = [
+            f"**Volume** {mesh.volume / 1000:.2f} cm³ (voxels {vol / 1000:.2f} cm³)",
+            f"**Area** {mesh.area / 100:.2f} cm²",
+            f"**Watertight** {'yes' if mesh.is_watertight else 'NO'}",
+            f"**Surface voxels** {res.n_surface_voxels:,} at {res.grid.voxel_size:g} mm",
+        ]
+        if ag is not None and len(ag):
+            worst = int(np.argmin(ag))
+            lines.append(f"**Agreement** (IoU) mean {ag.mean():.3f}, worst view {self.app.view_ids[worst]}: {ag[worst]:.3f}")
+            lines.append("<br/>" + " ".join(f"`{self.app.view_ids[j]}:{a:.2f}`" for j, a in enumerate(ag)))
+        self.measure.content = "  \n".join(lines)
+        self.show_status(self.app.status)
+        self.select(int(self.view.value))
+        if self.carve_show.value:
+            self._carve_display()
+
+    # ------------------------------------------------------------ views
+    def select(self, j):
+        app = self.app
+        if j >= len(self.live.cameras):
+            return
+        hull = app.hull_in_view(j)
+        img = self.live.select_view(j, hull)
+        self.view_image.image = _scene.thumbnail(img, 320)
+        ag = None if app.result is None or app.result.agreement is None else app.result.agreement[j]
+        angle = app.session.views[app.view_ids[j]].angle_deg
+        text = f"view **{app.view_ids[j]}**" + (f" at {angle:g}°" if angle is not None else "")
+        if ag is not None:
+            text += f": agreement (IoU of hull and silhouette) **{ag:.3f}**"
+        self.view_info.content = text
+        return img
+
+    def look_through(self, j, client=None):
+        img = self.select(j)
+        self.live.look_through(j, client, image=img)
+
+    # ------------------------------------------------------------ carve by view
+    def _carve_display(self):
+        if not self.carve_show.value:
+            self.live.set_visible("carved", False)
+            self.carve_info.content = ""
+            return
+        views = self.app.carving_views()
+        if views is None:
+            return
+        res = self.app.result
+        if self.live._carved is None or getattr(self, "_carved_for", None) is not res:
+            self.live.set_carved_by_view(views, res.occupancy, res.grid)
+            self._carved_for = res
+        step = int(self.carve_step.value)
+        n = self.live.show_carve_step(None if step < 0 else step)
+        which = "all views" if step < 0 else f"view {self.app.view_ids[step]}"
+        total = int((views >= 0).sum())
+        mine = total if step < 0 else int((views == step).sum())
+        self.carve_info.content = f"{which}: carves {mine:,} of {views.size:,} voxels ({n:,} shown near the hull)"
+        if step >= 0:
+            self.view.value = step
+
+    # ------------------------------------------------------------ roi
+    def roi(self):
+        size = np.asarray(self.roi_size.value, float)
+        c = np.asarray(self._roi_centre, float)
+        return c - size / 2, c + size / 2
+
+    def _update_roi_info(self):
+        lo, hi = self.roi()
+        n, b = _scene.roi_stats(lo, hi, float(self.voxel.value), int(self.tolerance.value))
+        self.roi_info.content = (
+            f"{n:,} voxels at {float(self.voxel.value):g} mm, about {_scene.human_bytes(b)}  \n"
+            f"min {np.round(lo, 1).tolist()} max {np.round(hi, 1).tolist()} mm"
+        )
+
+    def _roi_gizmo_toggle(self, on):
+        sc = self.live.server.scene
+        if not on:
+            for h in (self._roi_box, self._roi_gizmo):
+                if h is not None:
+                    h.remove()
+            self._roi_box = self._roi_gizmo = None
+            return
+        size = float(np.linalg.norm(self.roi_size.value))
+        self._roi_gizmo = sc.add_transform_controls(
+            "/roi", scale=0.35 * size, disable_rotations=True, position=tuple(self._roi_centre),
+            translation_limits=tuple((-5 * size, 5 * size) for _ in range(3)),
+        )
+        self._update_roi_box()
+
+        @self._roi_gizmo.on_update
+        def _(_e):
+            self._roi_centre = np.asarray(self._roi_gizmo.position, float)
+            self._update_roi_info()
+
+    def _update_roi_box(self):
+        self._update_roi_info()
+        if self._roi_gizmo is None:
+            return
+        self._roi_box = self.live.server.scene.add_box(
+            "/roi/box", color=(255, 150, 0), dimensions=tuple(float(v) for v in self.roi_size.value), wireframe=True,
+        )
