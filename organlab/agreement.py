@@ -14,12 +14,12 @@ least a voxel's projected size) are a matter of resolution and are not
 counted; the rest, as a fraction of the silhouette's area, is the view's
 ``disagreement``.  A view is flagged when it exceeds :data:`AGREEMENT_LIMIT`.
 
-Measured on the sample session (36 views, sub-voxel hull): the correct views'
-largest disagreement is 0.0015 at 2 mm (IoU >= 0.985) and 0.0014 at 1 mm;
-with view 050 labelled 40 degrees, that view reaches 0.0048 at 2 mm (0.0076
-at 1 mm); with 36 identical views every view reaches 0.08.  The limit 0.003
-lies between the correct sample (2x below) and the mislabelled view (1.6x
-above).
+Measured on the sample session (36 views, sub-voxel hull, finished surface): the
+correct views' largest disagreement is 0.0021 at 2 mm (IoU >= 0.981) and 0.0015 at
+1 mm; with view 050 labelled 40 degrees, that view reaches 0.0056 at 2 mm (0.0079 at
+1 mm), every other view stays below 0.0029; with 36 identical views every view
+reaches 0.082.  The limit 0.003 lies between the correct sample (1.4x below at 2 mm)
+and the mislabelled view (1.9x above).
 """
 
 from __future__ import annotations

