@@ -1,5 +1,6 @@
 # Quick start: `make demo`, `make test`.  Both create .venv from environment.txt when needed.
-PY ?= python3.11
+# the first of the supported Pythons found (override with PY=...)
+PY ?= $(or $(shell for p in python3.11 python3.12 python3.13; do command -v $$p >/dev/null 2>&1 && { echo $$p; break; }; done),python3.11)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -7,7 +8,7 @@ STAMP := $(VENV)/.installed
 .PHONY: demo test venv bench clean sample
 
 $(STAMP): environment.txt pyproject.toml
-	@command -v $(PY) >/dev/null 2>&1 || { echo "error: $(PY) not found; install Python 3.11" >&2; exit 1; }
+	@command -v $(PY) >/dev/null 2>&1 || { echo "error: $(PY) not found; install Python 3.11, 3.12 or 3.13 (or give PY=...)" >&2; exit 1; }
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -r environment.txt
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps -e .

@@ -30,7 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Camera", "rot_z", "distort", "undistort"]
+__all__ = ["Camera", "rot_z", "distort", "undistort", "nearest_rotation", "ROTATION_TOLERANCE"]
+
+#: Largest ``max |R R^T - I|`` accepted (and re-orthonormalised) by :func:`nearest_rotation`:
+#: published pose files print rotations to ~7 digits (|R R^T - I| about 1.5e-6).
+ROTATION_TOLERANCE = 1e-4
 
 
 def rot_z(angle_deg):
@@ -48,6 +52,42 @@ def rot_z(angle_deg):
     a = np.deg2rad(float(angle_deg))
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def nearest_rotation(R, *, tolerance=ROTATION_TOLERANCE):
+    """The rotation nearest to an almost orthonormal matrix.
+
+    Parameters
+    ----------
+    R : (3, 3) float
+    tolerance : float
+        Largest accepted ``max |R R^T - I|``.
+
+    Returns
+    -------
+    R_orth : (3, 3) float64
+        ``U V^T`` of ``R``'s SVD (the nearest rotation in the Frobenius norm).
+    error : float
+        ``max |R R^T - I|`` of the input.
+
+    Raises
+    ------
+    ValueError
+        Not 3x3, not finite, ``det R <= 0`` or beyond ``tolerance``; the message
+        states the error found.
+    """
+    R = np.array(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError(f"must be a finite 3x3 matrix, got shape {R.shape}")
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if det <= 0 or err > tolerance:
+        raise ValueError(
+            f"is not a rotation matrix (max |R R^T - I| = {err:.2g}, det = {det:.7g}; accepted: within "
+            f"{tolerance:g} of orthonormal, det > 0)"
+        )
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt, err
 
 
 def _as_points(points, name="points"):

@@ -4,6 +4,7 @@
                          [--method hull|coloring|space_carving] [--color-threshold X]
                          [--calibration PATH] [--recalibrate] [--measure] [--raw-surface]
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
+    organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--force]
     organlab mesh RESULT_DIR [--repair] [--smooth] [--remesh MM] [--tetra] [--measure] [--picture]
     organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [...]
@@ -17,9 +18,12 @@ traceback for them.
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 from pathlib import Path
 
+from ._cliparser import OneLineParser as _Parser
 from .errors import OrganlabError
 
 
@@ -28,13 +32,13 @@ def _positive_float(text):
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return v
 
 
 def _parser():
-    p = argparse.ArgumentParser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
+    p = _Parser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("reconstruct", help="carve the specimen of a session and write voxels, mesh and report")
@@ -60,6 +64,10 @@ def _parser():
                    help="calibrate from the board images even when the session's calibration.json matches it")
     r.add_argument("--picture", action="store_true", help="also render the mesh to DIR/mesh.png (pyvista, off-screen)")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--strict", action="store_true", help="exit with status 2 when the run raises a warning "
+                   "(views that disagree with the model, a poor turntable fit, ...)")
+    r.add_argument("--max-memory", default=None, metavar="SIZE",
+                   help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
     r.add_argument("--measure", action="store_true", help="AAA measurements in the report (default: when the session is an AAA)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
 
@@ -74,6 +82,7 @@ def _parser():
                    help="where to write the check figures (default: calibration_check beside calibration.json)")
     c.add_argument("--quiet", action="store_true")
 
+    _init_parser(sub)
     _add_view_parser(sub)
     _mesh_parser(sub)
 
@@ -82,6 +91,39 @@ def _parser():
     s.add_argument("args", nargs=argparse.REMAINDER)
     _capture_parser(sub)
     return p
+
+
+def _init_parser(sub):
+    i = sub.add_parser("init", help="write a session.json for a folder of images (views sorted by name), to edit")
+    i.add_argument("folder", type=Path, help="folder with views/ (or the view images), background/, calibration/...")
+    i.add_argument("--step", type=float, required=True, metavar="DEG", help="table rotation between views, degrees")
+    i.add_argument("--start", type=float, default=0.0, metavar="DEG", help="angle of the first view (default 0)")
+    i.add_argument("--board", default="9x6", metavar="CxR", help="board's inner corners, columns x rows (default 9x6)")
+    i.add_argument("--square", type=_positive_float, default=20.0, metavar="MM", help="board's square size (default 20)")
+    i.add_argument("--roi", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1", help="voxel space, mm (default a 200 mm box)")
+    i.add_argument("--force", action="store_true", help="overwrite an existing session.json")
+
+
+def _init(a):
+    from .scaffold import init_session
+
+    try:
+        corners = tuple(int(v) for v in a.board.lower().split("x"))
+        roi = None if a.roi is None else [float(v) for v in a.roi.split(",")]
+    except ValueError:
+        raise OrganlabError(f"--board must be like 9x6 and --roi 6 numbers separated by commas, got {a.board!r}, {a.roi!r}") from None
+    if len(corners) != 2 or min(corners) < 2:
+        raise OrganlabError(f"--board must be COLUMNSxROWS of inner corners (each >= 2), got {a.board!r}")
+    path, notes = init_session(a.folder, step_deg=a.step, start_deg=a.start, inner_corners=corners,
+                               square_size=a.square, roi=roi, force=a.force)
+    doc = json.loads(path.read_text())
+    print(f"organlab init: wrote {path} ({len(doc['views'])} views, "
+          f"{len(doc.get('background_images', []))} background frames, "
+          f"{len(doc.get('calibration', {}).get('intrinsic_images', []))} intrinsic and "
+          f"{len(doc.get('calibration', {}).get('turntable_images', []))} turntable board images); check:")
+    for n in notes:
+        print(f"  - {n}")
+    return 0
 
 
 def _capture_parser(sub):
@@ -185,7 +227,10 @@ def _bars(quiet):
 
 def _reconstruct(a):
     from .pipeline import reconstruct, summary_table, write_outputs
+    from .preflight import atomic_output_dir, check_output_dir, parse_memory
 
+    check_output_dir(a.out)  # before the long work
+    max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
     rec = reconstruct(
         a.session,
         voxel_size=a.voxel_size,
@@ -197,21 +242,50 @@ def _reconstruct(a):
         calibration=a.calibration,
         recalibrate=a.recalibrate,
         progress=_bars(a.quiet),
+        max_memory=max_memory,
         finish=not a.raw_surface,
         measure=True if a.measure else None,
     )
-    paths = write_outputs(rec, a.out)
-    if a.picture:
-        from .figures import mesh_snapshot
-
-        ref = rec.report.get("mesh_volume_error_pct")
-        title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {a.voxel_size:g} mm"
-        title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
-        paths["picture"] = mesh_snapshot(rec.mesh, a.out / "mesh.png", title=title)
+    with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
+        paths = write_outputs(rec, tmp, atomic=False)
+        if a.picture:
+            paths.update(_pictures(rec, tmp, a.voxel_size))
     print(f"organlab reconstruct: {rec.session.name} -> {a.out}")
     print(summary_table(rec.report))
     print(f"  wrote {', '.join(p.name for p in paths.values())}")
+    for what in ("intrinsic", "turntable"):
+        for name, why in rec.report.get("calibration", {}).get(f"{what}_rejected", {}).items():
+            print(f"  {what} image {name} not used: {why}")
+    warnings = rec.report.get("warnings", [])
+    for w in warnings:
+        print(f"organlab: warning: {w}", file=sys.stderr)
+    if warnings and a.strict:
+        print(f"organlab: error: {len(warnings)} warning(s) and --strict", file=sys.stderr)
+        return 2
     return 0
+
+
+def _pictures(rec, folder, voxel_size):
+    from .agreement import model_mask
+    from .figures import agreement_chart, agreement_overlay, mesh_snapshot
+
+    ref = rec.report.get("mesh_volume_error_pct")
+    title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {voxel_size:g} mm"
+    title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
+    out = {"picture": mesh_snapshot(rec.mesh, folder / "mesh.png", title=title)}
+    if rec.report.get("agreement"):
+        out["agreement"] = agreement_chart(rec.report, folder / "agreement.png")
+        worst = max(range(len(rec.cameras)), key=lambda i: rec.report["views"][i]["agreement"]["disagreement"])
+        sil = rec.silhouettes[worst].coverage >= 0.5
+        view = rec.session.views[worst]
+        a = rec.report["views"][worst]["agreement"]
+        out["worst_view"] = agreement_overlay(
+            rec.session.read(view.image, key=f"views[{worst}].image"), sil,
+            model_mask(rec.mesh, rec.cameras[worst], sil.shape), folder / "worst_view.png",
+            title=f"{rec.session.relpath(view.image)}: IoU {a['iou']:.3f}, {100 * a['disagreement']:.2f} % unexplained "
+                  "(red: silhouette only, blue: model only)",
+        )
+    return out
 
 
 def _calibrate(a):
@@ -236,6 +310,8 @@ def _calibrate(a):
         for name, why in (fit.rejected.items() if fit is not None else ()):
             print(f"  {what} image {name} not used: {why}")
     print(f"  {len(figs)} check figures in {Path(figs[0]).parent if figs else '-'}")
+    for w in cal.warnings():
+        print(f"organlab: warning: {w}", file=sys.stderr)
     return 0
 
 
@@ -276,7 +352,7 @@ def main(argv=None):
     else:
         args = _parser().parse_args(argv)
         handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "view": _view,
-                   "mesh": _mesh}[args.command]
+                   "mesh": _mesh, "init": _init}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import OrganlabError
 
-__all__ = ["mesh_snapshot", "check_figures"]
+__all__ = ["mesh_snapshot", "check_figures", "agreement_chart", "agreement_overlay"]
 
 
 def mesh_snapshot(mesh, path, *, window_size=(800, 600), title=None, elevation_deg=20.0, azimuth_deg=-60.0):
@@ -221,3 +221,71 @@ def _turntable_figure(img, name, angle, tt, obj, pattern, scale):
         lines.append(f"REJECTED: {tt.rejected[name]}")
     lines.append("+ detected  o reprojected  | axis  O sweep of first corner")
     return _draw(img, det, rep, scale, lines, extra)
+
+
+def agreement_chart(report, path):
+    """Bar chart of every view's agreement with the model (``report['views'][i]['agreement']``).
+
+    Parameters
+    ----------
+    report : dict
+        A reconstruction report with view agreement (organlab.agreement).
+    path : str or Path
+        PNG to write.
+
+    Returns
+    -------
+    Path
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [(Path(v["image"]).stem, v["agreement"]) for v in report["views"]]
+    limit = report["agreement"]["limit"]
+    vals = np.array([100 * a["disagreement"] for _, a in rows])
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.22 * len(rows) + 2), 3.2), layout="constrained")
+    ax.bar(range(len(rows)), vals, color=["#c0392b" if not a["ok"] else "#4a7fb0" for _, a in rows])
+    ax.axhline(100 * limit, color="k", ls="--", lw=1, label=f"limit {100 * limit:.2f} %")
+    ax.set_xticks(range(len(rows)), [n for n, _ in rows], rotation=90, fontsize=7)
+    ax.set_ylabel("silhouette unexplained (%)")
+    ax.set_title(f"{report.get('session', '')}: view agreement (red: over the limit)", fontsize=10)
+    ax.legend(loc="upper right", fontsize=8)
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def agreement_overlay(image, silhouette, model, path, *, title=None):
+    """A view's image with its silhouette and the model's projection drawn over it.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+    silhouette : (H, W) bool
+    model : (H, W) bool
+        Pixels covered by the model's projection (organlab.agreement.model_mask).
+    path : str or Path
+        PNG to write: red = silhouette the model does not explain, blue = model
+        outside the silhouette, green = both.
+    title : str, optional
+
+    Returns
+    -------
+    Path
+    """
+    from PIL import Image, ImageDraw
+
+    img = np.asarray(image)
+    rgb = np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3]
+    out = rgb.astype(np.float32) * 0.5
+    for m, colour in ((silhouette & model, (0, 200, 0)), (silhouette & ~model, (255, 0, 0)), (model & ~silhouette, (0, 80, 255))):
+        out[m] = 0.4 * out[m] + 0.6 * np.array(colour, np.float32)
+    pic = Image.fromarray(np.clip(out, 0, 255).astype(np.uint8))
+    if title:
+        ImageDraw.Draw(pic).text((6, 6), title, fill=(255, 255, 255))
+    path = Path(path)
+    pic.save(path)
+    return path

@@ -115,14 +115,15 @@ class _Stages:
 
 
 def _check_options(session, voxel_size, threshold, method, hull):
-    if isinstance(voxel_size, bool) or not isinstance(voxel_size, (int, float)) or not voxel_size > 0:
-        raise SessionError(f"--voxel-size must be a positive number of mm, got {voxel_size!r}")
+    from .preflight import check_voxel_size
+
+    check_voxel_size(voxel_size)  # finite and > 0
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if hull not in HULL_METHODS:
         raise ValueError(f"hull must be one of {HULL_METHODS}, got {hull!r}")
-    if threshold is not None and not threshold > 0:
-        raise SessionError(f"--threshold must be > 0 grey levels, got {threshold}")
+    if threshold is not None and not (np.isfinite(threshold) and threshold > 0):
+        raise SessionError(f"--threshold must be a finite number of grey levels > 0, got {threshold}")
     if not session.views:
         raise SessionError(f"{session.json_path}: views: the session has no views to reconstruct (calibration-only session)")
 
@@ -187,6 +188,7 @@ def reconstruct(
     calibration=None,
     recalibrate=False,
     progress=None,
+    max_memory=None,
     finish=True,
     measure=None,
 ):
@@ -228,6 +230,10 @@ def reconstruct(
         ``calibration.json`` matches it.
     progress : callable(stage) -> bar, optional
         Factory of per-stage progress bars (``bar(done, total)``, ``bar.close()``).
+    max_memory : int, optional
+        Bytes the voxel grid may take (estimated before any work); default the
+        memory available now.  Larger grids are refused with the largest voxel
+        size that fits (organlab.preflight).
     finish : bool
         Repair, smooth and remesh the marching-cubes surface
         (:func:`organlab.surface.finish_surface`: watertight, manifold, no slivers).
@@ -246,6 +252,7 @@ def reconstruct(
     _check_options(session, voxel_size, threshold, method, hull)
     stages = _Stages(progress)
 
+    _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory)
     cal, how = _calibration_stage(stages, session, calibration, recalibrate)
     cameras = cal.cameras(session)
     images = session.images()  # read once: colouring needs the same images
@@ -268,6 +275,7 @@ def reconstruct(
     report.update(extra)
     if coloring_info is not None:
         report["coloring"] = coloring_info
+    _add_checks(report, session, grid, mesh, cameras, sils, cal)
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal, raw_mesh, aaa)
 
 
@@ -291,6 +299,37 @@ def _finish_and_measure(session, mesh, volume, grid, finish, measure):
                 raise
             extra["aaa_error"] = str(e)
     return mesh, aaa, extra
+
+
+def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory):
+    """Before the long work: the grid's memory (organlab.preflight), a finite colour threshold."""
+    from .preflight import check_grid_memory
+
+    if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
+        raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")
+    check_grid_memory(session.roi_min, session.roi_max, voxel_size, max_memory=max_memory, method=method,
+                      tolerance=tolerance if isinstance(tolerance, int) else 0, where=str(session.json_path))
+
+
+def _add_checks(report, session, grid, mesh, cameras, sils, cal):
+    """Trust checks into the report (issue 15): view agreement, what loading corrected."""
+    from .agreement import view_agreement
+
+    names = [session.relpath(v.image) for v in session.views]
+    agr = view_agreement(mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
+    for row, a in zip(report["views"], agr.views):
+        row["agreement"] = a
+    report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
+    report.setdefault("warnings", []).extend(agr.warnings)
+    if getattr(session, "notes", ()):
+        report["notes"] = list(session.notes)  # re-orthonormalised rotations
+    # calibration images not used, and why (no board found, board moved)
+    for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
+        if fit is not None:
+            report["calibration"][f"{what}_rejected"] = dict(fit.rejected)
+    if cal.turntable is not None:
+        report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
+    report["warnings"].extend(cal.warnings())
 
 
 def _color(images, cameras, occupancy, grid, sils, method, color_threshold, *, progress):
@@ -347,7 +386,7 @@ def _report(session, grid, occupancy, mesh, cameras, cal, how, sils, timings, me
     return r
 
 
-def write_outputs(rec, out_dir):
+def write_outputs(rec, out_dir, *, atomic=True):
     """Write ``report.json``, ``voxels.npz``, ``mesh.ply``, ``mesh.stl`` (and ``calibration.json``).
 
     ``calibration.json`` is the calibration used, when it was fitted from
@@ -358,11 +397,24 @@ def write_outputs(rec, out_dir):
     rec : Reconstruction
     out_dir : str or Path
         Created when missing.
+    atomic : bool
+        Write into a temporary folder beside ``out_dir`` and replace
+        ``out_dir`` with it only when every file is written
+        (:func:`organlab.preflight.atomic_output_dir`): an interrupted run
+        leaves the previous result intact, and no file of an earlier run
+        stays mixed with the new ones.  ``False`` writes into ``out_dir``
+        directly (for a caller that manages its own temporary folder).
 
     Returns
     -------
     dict of str -> Path
     """
+    if atomic:
+        from .preflight import atomic_output_dir
+
+        with atomic_output_dir(out_dir) as tmp:
+            paths = write_outputs(rec, tmp, atomic=False)
+        return {k: Path(out_dir) / p.name for k, p in paths.items()}
     from .surface import write_ply, write_stl
 
     out = Path(out_dir)
@@ -411,6 +463,10 @@ def summary_table(report):
         rows.append(("calib. RMS", f"{report['camera']['rms_px']:.3f} px"))
     if "turntable_rms_px" in report:
         rows.append(("turntable RMS", f"{report['turntable_rms_px']:.3f} px"))
+    if report.get("agreement"):
+        worst = [(r["image"], r["agreement"]) for r in report["views"] if r["image"] in report["agreement"]["worst_views"]]
+        worst.sort(key=lambda x: -x[1]["disagreement"])
+        rows.append(("worst views", ", ".join(f"{n} (IoU {a['iou']:.3f}, {100 * a['disagreement']:.2f} % unexplained)" for n, a in worst[:2])))
     for k, v in report["timings_s"].items():
         rows.append((f"time {k}", f"{v:.2f} s"))
     w = max(len(k) for k, _ in rows)

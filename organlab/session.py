@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, nearest_rotation
 from .errors import SessionError
 
 __all__ = [
@@ -80,6 +80,7 @@ class Session:
     calibration: dict | None = None  # contents of calibration.json when present
     raw: dict = field(default_factory=dict)
     backdrop: dict | None = None  # {"color": (3,) float RGB | "border" | "frames", "shadows": bool}
+    notes: tuple = ()  # of str: what loading corrected (e.g. a re-orthonormalised rotation)
 
     @property
     def json_path(self):
@@ -218,7 +219,7 @@ def load_session(path, *, check_images=True):
     intrinsic, turntable, background = _board_and_background_images(raw, root, sj)
     camera = _camera(raw, size, sj)
     calibration = _calibration_json(root / "calibration.json")
-    views = _views(raw, root, sj)
+    views, notes = _views(raw, root, sj)
     backdrop = _parse_backdrop(raw.get("backdrop"), sj, background)
     _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration, backdrop)
     session = Session(
@@ -237,6 +238,7 @@ def load_session(path, *, check_images=True):
         calibration=calibration,
         raw=raw,
         backdrop=backdrop,
+        notes=tuple(notes),
     )
     if check_images:
         _check_images(session)
@@ -362,6 +364,7 @@ def _views(raw, root, sj):
     if not isinstance(views_raw, list):
         _fail(sj, "views", "is required: a list of {'image': path, 'angle_deg': number} (may be empty)")
     views = []
+    notes = []
     for i, v in enumerate(views_raw):
         key = f"views[{i}]"
         image, a = _image_at_angle(v, key, sj, "give the table angle of every view")
@@ -372,8 +375,13 @@ def _views(raw, root, sj):
                 _fail(sj, key + ".pose", "must be {'R': 3x3, 't': [3]}")
             R = _matrix(p.get("R"), (3, 3), sj, key + ".pose.R")
             t = _matrix(p.get("t"), (3,), sj, key + ".pose.t")
-            if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-                _fail(sj, key + ".pose.R", "is not a rotation matrix")
+            try:
+                R_orth, err = nearest_rotation(R)
+            except ValueError as e:
+                _fail(sj, key + ".pose.R", f"{e}; give the rotation with more digits")
+            if err > 1e-12:
+                notes.append(f"{key}.pose.R re-orthonormalised (max |R R^T - I| was {err:.2g})")
+            R = R_orth
             pose = (R, t)
         mask = None
         if v.get("mask") is not None:
@@ -381,7 +389,7 @@ def _views(raw, root, sj):
                 _fail(sj, key + ".mask", "must be an image path")
             mask = root / v["mask"]
         views.append(View(root / image, a, pose, mask))
-    return views
+    return views, notes
 
 
 def _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration, backdrop):

@@ -177,6 +177,48 @@ def _tt_fit(K, dist, obj, pts, angles, x0=None):
     return res.x, cov
 
 
+def _per_image_rms(x, K, dist, obj, angles, pts):
+    res = _tt_residuals(x, K, dist, obj, angles, pts).reshape(len(pts), -1, 2)
+    return np.sqrt(np.mean(np.sum(res**2, axis=2), axis=1))
+
+
+def _tt_fit_robust(K, dist, obj, pts, angles):
+    """Turntable parameters that a minority of moved boards cannot drag, (8,).
+
+    The joint fit's soft-L1 loss stops a mislocated corner, not a board moved
+    between stops: that moves all the corners of an image, and 3 such images
+    of 10 drag the pose (the sample with 3 turntable images shifted by
+    (6, 3) px: RMS 1.79 px, a model 22 % too small).  Here the fit starts from
+    several poses (``solvePnP`` of all the images, and of windows of half of
+    them) with a redescending loss (``arctan``, 0.5 px: an image 6 px off weighs
+    almost nothing); the start whose fit has the smallest *median* per-image
+    RMS wins.  On that sample the moved images then stand at 6.7 px, the
+    others at 0.03-0.05 px (0.2-1 s).
+    """
+    from scipy.optimize import least_squares
+
+    n = len(pts)
+    subsets = [list(range(n))]
+    if n >= 4:
+        h = (n + 1) // 2
+        step = max(1, (n - h) // 3)
+        subsets += [list(range(s, s + h)) for s in range(0, n - h + 1, step)]
+    best = None
+    for idx in subsets:
+        if _distinct_angles([angles[i] for i in idx]) < 2:
+            continue
+        try:
+            x0 = _tt_init(K, dist, obj, pts[idx], [angles[i] for i in idx])
+        except CalibrationError:  # solvePnP failed on this subset: another start will do
+            continue
+        r = least_squares(_tt_residuals, x0, x_scale="jac", loss="arctan", f_scale=0.5,
+                          args=(K, dist, obj, angles, pts), xtol=1e-10, ftol=1e-10)
+        score = float(np.median(_per_image_rms(r.x, K, dist, obj, angles, pts)))
+        if best is None or score < best[0]:
+            best = (score, r.x)
+    return best[1] if best is not None else _tt_init(K, dist, obj, pts, angles)
+
+
 def _distinct_angles(angles):
     a = np.mod(np.asarray(angles, float), 360.0)
     return len(np.unique(np.round(a, 6)))
@@ -222,8 +264,9 @@ def calibrate_turntable(
         direction is defined (e.g. 9 x 6).
     names : sequence of str, optional
     flag_factor, flag_floor_px : float
-        An image whose RMS exceeds ``max(flag_factor * median, flag_floor_px)``
-        is flagged and the fit is run again without it.
+        An image whose RMS, under a fit that a minority of moved boards cannot
+        drag, exceeds ``max(flag_factor * median, flag_floor_px)`` is flagged and
+        the fit is run again without it, when more than half the images remain.
     progress : callable, optional
         ``progress(done, total)`` after each image's detection.
 
@@ -314,22 +357,21 @@ def fit_turntable(corners, angles_deg, camera, pattern, *, flag_factor=REJECT_FA
         raise CalibrationError("the turntable fit needs boards at 2 or more distinct table angles")
     det = list(corners)
     pts_all = np.stack([corners[n] for n in det])
-    used = det
-    x, cov = _tt_fit(K, dist, obj, pts_all, [ang[n] for n in used])
+    angles_all = [ang[n] for n in det]
+    # each image judged by its residuals under a fit the others agree on: a minority
+    # of moved boards cannot drag it (see _tt_fit_robust)
+    x = _tt_fit_robust(K, dist, obj, pts_all, angles_all)
+    per = _per_image_rms(x, K, dist, obj, angles_all, pts_all)
+    bad = per > _threshold(per, flag_factor, flag_floor_px)
+    keep = [n for n, b in zip(det, bad) if not b]
     flagged = []
-    for _pass in range(2):
-        res = _tt_residuals(x, K, dist, obj, [ang[n] for n in det], pts_all).reshape(len(det), -1, 2)
-        per = np.sqrt(np.mean(np.sum(res**2, axis=2), axis=1))
-        if _pass == 1:
-            break
-        thr = _threshold(per, flag_factor, flag_floor_px)
-        bad = per > thr
-        keep = [n for n, b in zip(det, bad) if not b]
-        if not bad.any() or len(keep) < 2 or _distinct_angles([ang[n] for n in keep]) < 2:
-            break
+    # set them aside only when most images remain (else the RMS says the fit is poor)
+    if bad.any() and len(keep) >= max(2, len(det) // 2 + 1) and _distinct_angles([ang[n] for n in keep]) >= 2:
         flagged = [n for n, b in zip(det, bad) if b]
-        used = keep
-        x, cov = _tt_fit(K, dist, obj, np.stack([corners[n] for n in used]), [ang[n] for n in used], x0=x)
+    used = [n for n in det if n not in flagged]
+    x, cov = _tt_fit(K, dist, obj, np.stack([corners[n] for n in used]), [ang[n] for n in used], x0=x)
+    res = _tt_residuals(x, K, dist, obj, angles_all, pts_all).reshape(len(det), -1, 2)
+    per = np.sqrt(np.mean(np.sum(res**2, axis=2), axis=1))
     per_image = {n: float(r) for n, r in zip(det, per)}
     used_res = np.stack([res[det.index(n)] for n in used])
 

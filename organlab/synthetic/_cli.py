@@ -8,11 +8,12 @@ from ._session import make_session
 
 
 def main(argv=None):
-    """``python -m organlab.synthetic OUT [--seed N] [--specimen aaa|grooved] [--small]``."""
-    import argparse
+    """``python -m organlab.synthetic OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force]``."""
     import time
 
-    ap = argparse.ArgumentParser(prog="organlab synth", description="Write a synthetic organlab session folder.")
+    from .._cliparser import OneLineParser
+
+    ap = OneLineParser(prog="organlab synth", description="Write a synthetic organlab session folder.")
     ap.add_argument("out", help="session folder to write")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--specimen", choices=["aaa", "grooved", "dented"], default="aaa")
