@@ -423,7 +423,7 @@ def _reference(raw, sj):
 
 
 def _parse_backdrop(value, sj, background):
-    """The ``backdrop`` key (docs/session-format-backdrop.md): None or ``{"color": ..., "shadows": bool}``."""
+    """The ``backdrop`` key (docs/session-format.md, Backdrop): None or ``{"color": ..., "shadows": bool}``."""
     if value is None:
         return None
     if not isinstance(value, dict) or "color" not in value:

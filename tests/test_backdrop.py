@@ -15,7 +15,7 @@ from organlab import load_session
 from organlab import silhouette as S
 from organlab.errors import SessionError
 from organlab.synthetic import _hard
-from tests.test_session import _DELETE, _make
+from tests.test_session import _make
 
 
 def _iou(a, b):

@@ -15,7 +15,6 @@ import pytest
 
 import organlab
 from organlab.coloring import PIPELINE_OPTIONS, color_voxels
-from organlab.coloring._auto import exposure_gains
 from organlab.coloring._statistics import _shading_fit_std, _trimmed_std
 from organlab.datasets import render_silhouette
 from tests.test_coloring import SLOT, _Boxes, _hull, _render, _ring, _smooth

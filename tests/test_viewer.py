@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from test_carving import ring, sphere_mask
 
-from organlab.carving import ProgressiveCarver, carve, carving_views
+from organlab.carving import ProgressiveCarver, carve
 from organlab.grid import VoxelGrid
 
 pytest.importorskip("viser")

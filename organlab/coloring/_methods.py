@@ -24,6 +24,30 @@ def _bg_arg(bg):
     return (bg, True) if bg is not None else (np.zeros((1, 1, 1), np.uint8), False)
 
 
+def _layer_geometry(active, layer, axis, ax_a, ax_b, origin, h):
+    """The active voxels of one layer: in-layer indices, the layer's corner, grid indices, needed corners.
+
+    Returns ``ab`` (n, 2) int64 in-layer indices from the active box's corner, the box's size
+    ``na``, ``nb``, its lowest corner (3,) mm, ``ijk`` (n, 3) grid indices and ``needed``
+    (na + 1, nb + 1) bool: the voxel corners that some active voxel uses.
+    """
+    ia, ib = np.nonzero(active)
+    a0, b0 = ia.min(), ib.min()
+    na, nb = int(ia.max() - a0 + 1), int(ib.max() - b0 + 1)
+    ab = np.stack([ia - a0, ib - b0], axis=1).astype(np.int64)
+    corner = np.empty(3)
+    corner[ax_a] = origin[ax_a] + (a0 - 0.5) * h
+    corner[ax_b] = origin[ax_b] + (b0 - 0.5) * h
+    corner[axis] = origin[axis] + (layer - 0.5) * h
+    ijk = np.empty((len(ab), 3), np.int64)
+    ijk[:, ax_a], ijk[:, ax_b], ijk[:, axis] = ia, ib, layer
+    needed = np.zeros((na + 1, nb + 1), bool)
+    for di in (0, 1):
+        for dj in (0, 1):
+            needed[ab[:, 0] + di, ab[:, 1] + dj] = True
+    return ab, na, nb, corner, ijk, needed
+
+
 def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress):
     """Seitz & Dyer's layered pass (see the module docstring)."""
     V, C = stack.shape[0], stack.shape[3]
@@ -60,20 +84,7 @@ def _voxel_coloring(stack, cams, cameras, bg, candidates, grid, threshold, measu
         n_hidden_skipped = int(np.count_nonzero(sub)) - int(np.count_nonzero(active))
         counts["hidden"] += n_hidden_skipped
         if active.any():
-            ia, ib = np.nonzero(active)
-            a0, b0 = ia.min(), ib.min()
-            na, nb_ = int(ia.max() - a0 + 1), int(ib.max() - b0 + 1)
-            ab = np.stack([ia - a0, ib - b0], axis=1).astype(np.int64)
-            corner = np.empty(3)
-            corner[ax_a] = origin[ax_a] + (a0 - 0.5) * h
-            corner[ax_b] = origin[ax_b] + (b0 - 0.5) * h
-            corner[axis] = origin[axis] + (layer - 0.5) * h
-            ijk = np.empty((len(ab), 3), np.int64)
-            ijk[:, ax_a], ijk[:, ax_b], ijk[:, axis] = ia, ib, layer
-            needed = np.zeros((na + 1, nb_ + 1), bool)
-            for di in (0, 1):
-                for dj in (0, 1):
-                    needed[ab[:, 0] + di, ab[:, 1] + dj] = True
+            ab, na, nb_, corner, ijk, needed = _layer_geometry(active, layer, axis, ax_a, ax_b, origin, h)
             proj = np.empty((V, 2, na + 1, nb_ + 1, 2))
             ok = np.empty((V, 2, na + 1, nb_ + 1), bool)
             # Voxels seen through to the background in some view go first.

@@ -18,7 +18,8 @@ from ._aaa import AAAMeasures, measure_aaa
 from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
 from ._mesh import MC_METHODS, Mesh, color_vertices, measure, mesh_from_field, mesh_from_volume
 from ._quality import boundary_loops, mesh_quality
-from ._result import aaa_picture, is_aaa_session, load_voxels, mesh_result
+from ..figures import aaa_picture  # drawn with the other pictures; re-exported here beside measure_aaa
+from ._result import is_aaa_session, load_voxels, mesh_result
 from ._repair import finish_surface, remesh_mesh, repair_mesh, smooth_mesh
 from ._tetra import TETRA_FORMATS, TetMesh, read_tetra, tet_quality, tetrahedralize, write_tetra
 from ._truth import distance_to_specimen, surface_samples

@@ -122,7 +122,6 @@ def classic_marching_cubes(volume, level, *, decider=True):
         Consistently oriented within the whole mesh (orientation sign not fixed).
     """
     vol = np.asarray(volume, dtype=np.float64) - level
-    ins = vol > 0
     nx, ny, nz = vol.shape
     # (M, 8) corner values of every cube, corners in CORNERS order
     cv = np.stack([vol[i : nx - 1 + i, j : ny - 1 + j, k : nz - 1 + k] for i, j, k in CORNERS], axis=-1)

@@ -8,7 +8,6 @@ runs the requested steps; the CLI only calls it.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -109,52 +108,9 @@ def mesh_result(result_dir, *, repair=True, smooth=True, remesh="auto", tetra=Fa
         write_json(paths["aaa"], {**m.summary(), "centreline_mm": m.centreline.tolist(),
                                   "feret_mm": m.feret_mm.tolist(), "equivalent_mm": m.equivalent_mm.tolist()})
         if picture:
+            from ..figures import aaa_picture
+
             paths["aaa_picture"] = aaa_picture(mesh, m, out / "aaa_measures.png")
     paths["report"] = out / "surface_report.json"
     write_json(paths["report"], report)
     return report, paths
-
-
-def aaa_picture(mesh, measures, path, *, window_size=(900, 900)):
-    """The mesh (translucent) with its centreline and the maximum-diameter section, off-screen (pyvista, EGL).
-
-    Parameters
-    ----------
-    mesh : Mesh
-    measures : AAAMeasures
-    path : str or Path
-        PNG to write.
-
-    Returns
-    -------
-    Path
-    """
-    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista as pv
-
-    faces = np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel()
-    poly = pv.PolyData(np.asarray(mesh.vertices, dtype=np.float64), faces)
-    p = pv.Plotter(off_screen=True, window_size=tuple(window_size))
-    p.set_background("white")
-    p.add_mesh(poly, color="#d98c7a", opacity=0.35, smooth_shading=True)
-    p.add_mesh(pv.lines_from_points(measures.centreline), color="#1f4e9c", line_width=5)
-    sec = np.vstack([measures.max_section, measures.max_section[:1]])
-    p.add_mesh(pv.lines_from_points(sec), color="#c0102a", line_width=6)
-    p.add_mesh(pv.PolyData(measures.max_location_mm[None]), color="#c0102a", point_size=14, render_points_as_spheres=True)
-    s = measures.summary()
-    p.add_text(
-        f"max diameter {s['max_diameter_mm']:.1f} mm (equivalent {s['max_equivalent_diameter_mm']:.1f} mm)\n"
-        f"at z = {s['max_location_mm'][2]:.1f} mm, {s['max_arc_mm']:.0f} mm along the centreline\n"
-        f"neck {s['neck_diameter_mm']:.1f} mm, sac {s['sac_length_mm']:.0f} mm long, {s['sac_volume_mm3'] / 1000:.1f} cm3",
-        position="upper_left", font_size=11, color="black",
-    )
-    lo, hi = mesh.bounds
-    center = (lo + hi) / 2
-    dist = 1.1 * float(np.linalg.norm(hi - lo)) / 2 / np.tan(np.deg2rad(15.0))
-    el, az = np.deg2rad(22.0), np.deg2rad(-70.0)
-    eye = center + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    p.camera_position = [tuple(eye), tuple(center), (0, 0, 1)]
-    path = Path(path)
-    p.screenshot(str(path))
-    p.close()
-    return path

@@ -50,6 +50,9 @@ __all__ = [
     "make_session",
     "with_true_cameras",
     "DEFAULT_ROI",
+    "BOARD_CENTER_XY",
+    "BOARD_MARGIN",
+    "main",
 ]
 
 from ._boards import (

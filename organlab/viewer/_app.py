@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _scene
 from ._live import LiveView
 from ._worker import LatestWorker
 

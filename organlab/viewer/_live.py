@@ -110,7 +110,6 @@ class LiveView:
         lo = np.asarray(roi_min, np.float64)
         hi = np.asarray(roi_max, np.float64)
         size = float(np.linalg.norm(hi - lo))
-        centre = (lo + hi) / 2
         self._roi = (lo, hi)
         self._scale = size
         sc = self.server.scene
