@@ -187,7 +187,23 @@ class LiveView:
             self.set_voxels(occ, self._grid)
         return i
 
-    def capture_listener(self, camera0, *, background=None, threshold=None):
+    def set_grid(self, grid, *, tolerance=0):
+        """Carve from now on in ``grid`` (a new, empty progressive hull) and frame its roi.
+
+        Parameters
+        ----------
+        grid : VoxelGrid
+        tolerance : int
+            Tolerance of the progressive carving.
+        """
+        from ..carving import ProgressiveCarver
+
+        with self._lock:
+            self._grid = grid
+            self._carver = ProgressiveCarver(grid, tolerance=tolerance)
+        self.frame(*grid.bounds)
+
+    def capture_listener(self, camera0, *, background=None, threshold=None, floor=0.0):
         """A callback for ``organlab.capture``'s ``on_view(index, angle_deg, image)``.
 
         Each captured image is shown at its camera ``camera0.at_table_angle(angle)``;
@@ -203,6 +219,9 @@ class LiveView:
             :func:`organlab.silhouette.background_model` of the empty scene.
         threshold : float, optional
             Grey levels (automatic per view when omitted).
+        floor : float
+            Lowest automatic threshold, grey levels (e.g. 5 x the background
+            noise, as :class:`organlab.silhouette.SilhouetteModel` uses).
 
         Returns
         -------
@@ -211,7 +230,7 @@ class LiveView:
         from ..silhouette import silhouette
 
         def on_view(index, angle_deg, image):
-            sil = None if background is None else silhouette(image, background, threshold=threshold)
+            sil = None if background is None else silhouette(image, background, threshold=threshold, floor=floor)
             self.add_view(image, camera0.at_table_angle(angle_deg), sil)
 
         return on_view
