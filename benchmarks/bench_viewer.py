@@ -7,7 +7,8 @@
    (``SessionViewer.rerun``); the time runs until a websocket client connected
    to the server (a stand-in for the browser, speaking viser's protocol) has
    received the last message of the update: re-threshold 36 silhouettes,
-   hull field, occupancy, marching cubes, per-view agreement, and sending
+   hull field, occupancy, marching cubes, finish_surface and (an AAA session)
+   measure_aaa, per-view agreement, and sending
    voxels + mesh + read-outs.  A different threshold each time (no cache hit).
 2. Streaming: ``LiveView.set_voxels`` of a model with about 100 k surface
    voxels (a sphere, alternating between two radii so every update differs),

@@ -7,7 +7,7 @@
     organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--force]
     organlab mesh RESULT_DIR [--repair] [--smooth] [--remesh MM] [--tetra] [--measure] [--picture]
     organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
-    organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [...]
+    organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [--view [--port P]] [...]
     organlab view SESSION [--result DIR] [--port P] [--host H] [--voxel-size MM]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
@@ -151,8 +151,11 @@ def _capture_parser(sub):
     k.add_argument("--average", type=int, default=1, metavar="N", help="frames averaged into each image (default 1)")
     k.add_argument("--sim-size", default="640x480", metavar="WxH", help="simulated camera image size (default 640x480)")
     k.add_argument("--quiet", action="store_true")
-    # TODO(lead): --view (stream the progressive hull to organlab's live viewer, issue 10): pass
-    # on_view=lambda i, angle, image: ... to run_capture once LiveView.add_view is in main.
+    k.add_argument("--view", action="store_true", help="watch the capture in the live 3D viewer (browser): each view at "
+                   "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
+    k.add_argument("--port", type=int, default=8080, help="with --view: TCP port on 127.0.0.1 (default 8080; the next free one if taken)")
+    k.add_argument("--view-voxel-size", type=_positive_float, default=2.0, metavar="MM",
+                   help="with --view: voxel edge of the live hull in mm (default 2)")
 
 
 def _add_view_parser(sub):
@@ -327,16 +330,50 @@ def _capture(a):
         raise OrganlabError(f"--sim-size must be WIDTHxHEIGHT, e.g. 640x480, got {a.sim_size!r}") from None
     sim = {k: drive[k] for k in ("steps_per_rev", "microsteps", "gear_ratio")}
     sim["time_scale"] = 10.0  # simulated moves 10x faster than the real table
-    bar = _bars(a.quiet)("capture")
-    path = run_capture(
-        a.out, turntable=a.turntable, camera=a.camera, step_deg=a.step, n_background=a.background,
-        n_intrinsic=a.intrinsics, board=not a.no_board, intrinsics_file=a.camera_file, drive=drive,
-        audit_limit_deg=a.audit_limit, stop_on_flag=not a.no_stop_on_flag, settle_frames=a.settle,
-        average=a.average, sim_options=dict(sim, image_size=(w, h)), progress=bar,
-    )
-    bar.close()
-    print(f"organlab capture: {path} complete; next: organlab reconstruct {path} --out DIR")
+    viewer = _capture_viewer(a)
+    try:
+        bar = _bars(a.quiet)("capture")
+        path = run_capture(
+            a.out, turntable=a.turntable, camera=a.camera, step_deg=a.step, n_background=a.background,
+            n_intrinsic=a.intrinsics, board=not a.no_board, intrinsics_file=a.camera_file, drive=drive,
+            audit_limit_deg=a.audit_limit, stop_on_flag=not a.no_stop_on_flag, settle_frames=a.settle,
+            average=a.average, sim_options=dict(sim, image_size=(w, h)), progress=bar,
+            on_view=None if viewer is None else viewer.on_view,
+        )
+        bar.close()
+        print(f"organlab capture: {path} complete; next: organlab reconstruct {path} --out DIR")
+        if viewer is not None:
+            print(f"organlab capture: the viewer stays at {viewer.url}  (Ctrl-C stops)")
+            _serve_until_interrupted(viewer)
+    finally:
+        if viewer is not None:
+            viewer.stop()
     return 0
+
+
+def _capture_viewer(a):
+    """The live viewer of ``capture --view`` (its URL printed), or None."""
+    if not a.view:
+        return None
+    if a.no_board:
+        raise OrganlabError("--view needs the board images on the table (the views' camera poses come from them); "
+                            "drop --no-board or --view")
+    from .viewer import CaptureViewer
+
+    viewer = CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=a.port)
+    print(f"organlab capture: live view at {viewer.url}  (the hull appears with the first view)")
+    return viewer
+
+
+def _serve_until_interrupted(viewer):
+    """Keep the viewer's server up until Ctrl-C."""
+    import time
+
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
 
 
 def _synth(argv):

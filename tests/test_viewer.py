@@ -111,6 +111,50 @@ def test_session_scene_and_measurements(app, sample):
     assert "Volume" in app.controls.measure.content and f"{res.mesh.volume / 1000:.2f}" in app.controls.measure.content
 
 
+def _ring_feret(live):
+    """Largest distance between two points of the drawn maximum-diameter section, mm."""
+    from scipy.spatial.distance import pdist
+
+    nodes = live.server.scene._handle_from_node_name
+    ring = nodes["/aaa/max_section"].points.reshape(-1, 3).astype(np.float64)
+    return float(pdist(ring).max()), nodes
+
+
+def test_session_surface_finished_and_aaa_shown(app):
+    """A re-run runs the pipeline's stages after marching cubes: finish_surface, and measure_aaa
+    (the sample is an AAA); the scene draws the centreline and the maximum-diameter section."""
+    from test_surface_aaa import _true_max_section
+
+    from organlab.surface import mesh_quality
+    from organlab.synthetic import AAAPhantom
+
+    res = app.result
+    assert res.raw_mesh is not None and res.mesh.is_watertight
+    # the marching-cubes slivers are gone (raw: measured < 1 degree; finished: 20+)
+    assert mesh_quality(res.raw_mesh)["min_angle_deg"] < 1.0 < 20.0 <= mesh_quality(res.mesh)["min_angle_deg"]
+    assert abs(res.mesh.volume / res.raw_mesh.volume - 1) < 0.005  # finish_surface keeps the volume
+    a = res.aaa
+    assert a is not None and res.aaa_error is None
+    feret, nodes = _ring_feret(app.live)
+    assert {"/aaa/centreline", "/aaa/max_section", "/aaa/max_disc", "/aaa/max_diameter", "/aaa/label"} <= set(nodes)
+    line = nodes["/aaa/centreline"].points
+    np.testing.assert_allclose(line[:, 0], a.centreline[:-1], atol=1e-3)  # float32 in the scene
+    np.testing.assert_allclose(line[-1, 1], a.centreline[-1], atol=1e-3)
+    assert abs(feret - a.max_diameter_mm) < 0.01
+    d = nodes["/aaa/max_diameter"].points[0]
+    assert abs(np.linalg.norm(d[1] - d[0]) - a.max_diameter_mm) < 0.01
+    # against the phantom's exact geometry (54.60 mm): 12 views at 2 mm, measured 55.15 mm (+0.55)
+    true_d, _ = _true_max_section(AAAPhantom())
+    assert abs(feret - true_d) < 1.5
+    assert f"{a.max_diameter_mm:.1f} mm" in nodes["/aaa/label"].text
+    assert f"**AAA max diameter** {a.max_diameter_mm:.1f} mm" in app.controls.measure.content
+    assert app.live._handles["mesh"].opacity == 0.5  # translucent: the centreline inside is seen
+    app.controls.aaa_box.value = False  # hidden with its checkbox, the mesh opaque again
+    assert not app.live._handles["aaa"].visible and app.live._handles["mesh"].opacity is None
+    app.controls.aaa_box.value = True
+    assert app.live._handles["aaa"].visible and app.live._handles["mesh"].opacity == 0.5
+
+
 def test_agreement_drops_for_a_wrong_camera(app):
     from organlab.viewer._agreement import view_agreement
 
@@ -194,6 +238,10 @@ def test_result_folder(sample, tmp_path):
         np.testing.assert_allclose(v.result.mesh.volume, rec.mesh.volume, rtol=1e-6)
         assert len(v.live._handles["voxels"].points) > 0
         assert v.result.agreement.min() > 0.95
+        # the report has AAA measures: centreline and maximum section drawn, measured again from voxels.npz
+        feret, nodes = _ring_feret(v.live)
+        assert abs(feret - rec.report["aaa"]["max_diameter_mm"]) < 1.0  # same volume, same function: measured 0.0 mm
+        np.testing.assert_allclose(nodes["/aaa/centreline"].points[:, 0], rec.aaa.centreline[:-1], atol=0.01)
     finally:
         v.stop()
 

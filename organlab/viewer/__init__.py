@@ -3,12 +3,14 @@
 * :class:`LiveView` -- a scene that carving and capture stream partial results
   to (``add_view(image, camera, silhouette)``, ``set_voxels``, ``set_mesh``);
 * :class:`SessionViewer` -- a session with its reconstruction and the controls
-  that re-run it (``organlab view SESSION``).
+  that re-run it (``organlab view SESSION``);
+* :class:`CaptureViewer` -- a LiveView following a capture
+  (``organlab capture ... --view``).
 
 viser is imported only when one of them is used.
 """
 
-__all__ = ["LiveView", "SessionViewer", "Settings"]
+__all__ = ["CaptureViewer", "LiveView", "SessionViewer", "Settings"]
 
 
 def __getattr__(name):
@@ -16,6 +18,10 @@ def __getattr__(name):
         from ._live import LiveView
 
         return LiveView
+    if name == "CaptureViewer":
+        from ._capture import CaptureViewer
+
+        return CaptureViewer
     if name in ("SessionViewer", "Settings"):
         from . import _app
 

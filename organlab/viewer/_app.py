@@ -57,6 +57,9 @@ class Result:
     generation: int = 0
     views: np.ndarray | None = None  # carving_views, computed on demand
     timings: dict = dataclasses.field(default_factory=dict)  # seconds per stage
+    raw_mesh: object = None  # the marching-cubes mesh before organlab.surface.finish_surface
+    aaa: object = None  # organlab.surface.AAAMeasures (AAA sessions)
+    aaa_error: str | None = None  # why an AAA session was not measured
 
 
 def _load_cameras(session):
@@ -111,6 +114,12 @@ class SessionViewer:
         self.result = None
         self.status = "starting"
         self.errors = []
+        from ..surface import is_aaa_session
+
+        self.is_aaa = is_aaa_session(s)  # AAA measures after each re-run, as organlab reconstruct
+        # pymeshlab (finish_surface, in the worker thread) must be imported first in this thread:
+        # imported first in the worker, the process aborted at exit (glibc malloc_consolidate)
+        import pymeshlab  # noqa: F401
         self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}")
         from concurrent.futures import ThreadPoolExecutor
 
@@ -231,13 +240,16 @@ class SessionViewer:
             n_surf = self.live.set_voxels(occ, grid, colors, visible=shown)
         tm["voxels sent"] = time.perf_counter() - t1
         t1 = time.perf_counter()
-        mesh = self._mesh(occ, field, colors, colored, grid)
+        raw = self._mesh(occ, field, colors, colored, grid)
         tm["mesh"] = time.perf_counter() - t1
         check()
-        self.live.set_mesh(mesh, visible=self.controls.show_mesh)
+        self.live.set_mesh(raw, visible=self.controls.show_mesh)
         self.live.set_visible("voxels", self.controls.show_voxels)
-        tm["scene updated"] = time.perf_counter() - t0  # voxels and mesh queued for the browser
-        res = Result(st, grid, occ, mesh, masks, colors, None, n_surf, 0.0, gen)
+        tm["scene updated"] = time.perf_counter() - t0  # voxels and marching-cubes mesh queued for the browser
+        mesh, aaa, aaa_error = self._finish_and_measure(raw, occ if (colors is not None or field is None) else field,
+                                                        grid, check, tm)
+        res = Result(st, grid, occ, mesh, masks, colors, None, n_surf, 0.0, gen, raw_mesh=raw, aaa=aaa,
+                     aaa_error=aaa_error)
         t1 = time.perf_counter()
         res.agreement = self._agreement(mesh, masks)
         tm["agreement"] = time.perf_counter() - t1
@@ -285,6 +297,39 @@ class SessionViewer:
         if colors is not None:
             mesh = color_vertices(mesh, colors, colored, grid)
         return mesh
+
+    def _finish_and_measure(self, raw, volume, grid, check, tm):
+        """The stages after marching cubes, as organlab.pipeline runs them: the finished
+        surface (:func:`organlab.surface.finish_surface`) and, for an AAA session, the
+        measures (:func:`organlab.surface.measure_aaa` of the volume the mesh came from).
+
+        Returns the finished mesh (shown), the measures (shown) or None, and why an AAA
+        session was not measured (or None).
+        """
+        from ..errors import OrganlabError
+        from ..surface import finish_surface, measure_aaa
+
+        t1 = time.perf_counter()
+        mesh, _ = finish_surface(raw, voxel_size=grid.voxel_size)
+        tm["finish"] = time.perf_counter() - t1
+        check()
+        aaa = error = None
+        if self.is_aaa:
+            t1 = time.perf_counter()
+            try:
+                aaa = measure_aaa(volume, grid)
+            except OrganlabError as e:  # noted in the read-out, as the pipeline notes it in the report
+                error = str(e)
+            tm["aaa"] = time.perf_counter() - t1
+            check()
+        self._show_surface(mesh, aaa)
+        return mesh, aaa, error
+
+    def _show_surface(self, mesh, aaa):
+        """The finished mesh (translucent when the AAA measures inside it are shown) and the measures."""
+        shown = aaa is not None and self.controls.show_aaa
+        self.live.set_mesh(mesh, visible=self.controls.show_mesh, opacity=0.5 if shown else None)
+        self.live.set_aaa(aaa, visible=self.controls.show_aaa)
 
     def _agreement(self, mesh, masks):
         from ._agreement import view_agreement
@@ -339,12 +384,28 @@ class SessionViewer:
                                  hull=report.get("hull", "subvoxel"), roi=(tuple(lo), tuple(hi)))
         self.settings = st
         n = self.live.set_voxels(occ, grid, colors)
-        self.live.set_mesh(mesh, visible=self.controls.show_mesh)
+        aaa, aaa_error = self._result_aaa(folder, report)
+        self._show_surface(mesh, aaa)
         self.live.set_visible("voxels", self.controls.show_voxels)
-        res = Result(st, grid, occ, mesh, masks, colors, self._agreement(mesh, masks), n, 0.0, 0)
+        res = Result(st, grid, occ, mesh, masks, colors, self._agreement(mesh, masks), n, 0.0, 0, aaa=aaa,
+                     aaa_error=aaa_error)
         self.result = res
         self.status = f"result loaded from {folder}"
         self.controls.show_result(res)
+
+    def _result_aaa(self, folder, report):
+        """The AAA measures of a result folder whose report has them (or of an AAA session):
+        the report keeps only their summary, so they are measured again from ``voxels.npz``
+        (the same volume and function as ``organlab reconstruct``)."""
+        from ..errors import OrganlabError
+        from ..surface import load_voxels, measure_aaa
+
+        if "aaa" not in report and not self.is_aaa:
+            return None, None
+        try:
+            return measure_aaa(*load_voxels(folder)), None
+        except OrganlabError as e:
+            return None, str(e)
 
     # ------------------------------------------------------------ lifetime
     @property

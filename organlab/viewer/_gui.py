@@ -66,6 +66,8 @@ class Controls:
             self.model = gui.add_dropdown("Model", ("mesh", "voxels", "mesh + voxels"), initial_value="mesh",
                                           hint="the carved surface voxels, the mesh, or both")
             self.show_views_box = gui.add_checkbox("Cameras", initial_value=True)
+            self.aaa_box = gui.add_checkbox("AAA measures", initial_value=True, disabled=not app.is_aaa,
+                                            hint="centreline, maximum-diameter section (the mesh translucent)")
         self._roi_box = None
         self._roi_gizmo = None
         self._roi_centre = (lo + hi) / 2
@@ -80,6 +82,10 @@ class Controls:
     @property
     def show_voxels(self):
         return "voxels" in self.model.value
+
+    @property
+    def show_aaa(self):
+        return bool(self.aaa_box.value)
 
     def _settings_changed(self, **changes):
         self.app.rerun(**changes)
@@ -174,6 +180,12 @@ class Controls:
         def _(_e):
             self.live.set_visible("views", bool(self.show_views_box.value))
 
+        @self.aaa_box.on_update
+        def _(_e):
+            res = self.app.result
+            if res is not None:
+                self.app._show_surface(res.mesh, res.aaa)
+
     # ------------------------------------------------------------ read-outs
     def show_status(self, text):
         self.status.content = f"*{text}*"
@@ -191,6 +203,13 @@ class Controls:
             f"**Watertight** {'yes' if mesh.is_watertight else 'NO'}",
             f"**Surface voxels** {res.n_surface_voxels:,} at {res.grid.voxel_size:g} mm",
         ]
+        if res.aaa is not None:
+            a = res.aaa
+            lines.append(f"**AAA max diameter** {a.max_diameter_mm:.1f} mm (equivalent {a.max_equivalent_mm:.1f} mm) "
+                         f"at z {a.max_location_mm[2]:.1f} mm; neck {a.neck_diameter_mm:.1f} mm, "
+                         f"sac {a.sac_length_mm:.0f} mm, {a.sac_volume_mm3 / 1000:.1f} cm³")
+        elif res.aaa_error is not None:
+            lines.append(f"**AAA** not measured: {res.aaa_error}")
         if ag is not None and len(ag):
             worst = int(np.argmin(ag))
             lines.append(f"**Agreement** (IoU) mean {ag.mean():.3f}, worst view {self.app.view_ids[worst]}: {ag[worst]:.3f}")

@@ -57,6 +57,7 @@ class LiveView:
         self.selected = None
         self.updates = 0
         self._click_callbacks = []
+        self._aaa_handles = []
         self._views_visible = True
         self._looking = None
         self._grid = grid
@@ -186,7 +187,23 @@ class LiveView:
             self.set_voxels(occ, self._grid)
         return i
 
-    def capture_listener(self, camera0, *, background=None, threshold=None):
+    def set_grid(self, grid, *, tolerance=0):
+        """Carve from now on in ``grid`` (a new, empty progressive hull) and frame its roi.
+
+        Parameters
+        ----------
+        grid : VoxelGrid
+        tolerance : int
+            Tolerance of the progressive carving.
+        """
+        from ..carving import ProgressiveCarver
+
+        with self._lock:
+            self._grid = grid
+            self._carver = ProgressiveCarver(grid, tolerance=tolerance)
+        self.frame(*grid.bounds)
+
+    def capture_listener(self, camera0, *, background=None, threshold=None, floor=0.0):
         """A callback for ``organlab.capture``'s ``on_view(index, angle_deg, image)``.
 
         Each captured image is shown at its camera ``camera0.at_table_angle(angle)``;
@@ -202,6 +219,9 @@ class LiveView:
             :func:`organlab.silhouette.background_model` of the empty scene.
         threshold : float, optional
             Grey levels (automatic per view when omitted).
+        floor : float
+            Lowest automatic threshold, grey levels (e.g. 5 x the background
+            noise, as :class:`organlab.silhouette.SilhouetteModel` uses).
 
         Returns
         -------
@@ -210,7 +230,7 @@ class LiveView:
         from ..silhouette import silhouette
 
         def on_view(index, angle_deg, image):
-            sil = None if background is None else silhouette(image, background, threshold=threshold)
+            sil = None if background is None else silhouette(image, background, threshold=threshold, floor=floor)
             self.add_view(image, camera0.at_table_angle(angle_deg), sil)
 
         return on_view
@@ -354,8 +374,11 @@ class LiveView:
                 )
             self.updates += 1
 
-    def set_mesh(self, mesh, *, visible=True):
-        """Show a triangle mesh (organlab.surface.Mesh), with its vertex colours when it has them."""
+    def set_mesh(self, mesh, *, visible=True, opacity=None):
+        """Show a triangle mesh (organlab.surface.Mesh), with its vertex colours when it has them.
+
+        ``opacity`` (0-1, meshes without vertex colours): e.g. 0.5 to see an AAA centreline inside.
+        """
         v = np.asarray(mesh.vertices, np.float32)
         f = np.asarray(mesh.faces, np.uint32)
         with self._lock:
@@ -369,11 +392,48 @@ class LiveView:
                 tm = trimesh.Trimesh(v, f, vertex_colors=np.asarray(mesh.vertex_colors, np.uint8), process=False)
                 self._handles["mesh"] = sc.add_mesh_trimesh("/mesh", tm, visible=visible)
             else:
-                self._handles["mesh"] = sc.add_mesh_simple("/mesh", v, f, color=(215, 150, 130), visible=visible)
+                self._handles["mesh"] = sc.add_mesh_simple("/mesh", v, f, color=(215, 150, 130), visible=visible,
+                                                           opacity=opacity, side="front" if opacity is None else "double")
             self.updates += 1
 
+    def set_aaa(self, measures, *, visible=True):
+        """Show AAA measures: the centreline, the maximum-diameter section (ring and disc), its diameter.
+
+        Parameters
+        ----------
+        measures : organlab.surface.AAAMeasures or None
+            None removes what an earlier call showed.
+
+        Returns
+        -------
+        dict or None : the arrays drawn (:func:`._scene.aaa_geometry`)
+        """
+        with self._lock:
+            for h in self._aaa_handles:
+                h.remove()
+            self._aaa_handles = []
+            self._handles.pop("aaa", None)
+            if measures is None:
+                return None
+            g = _scene.aaa_geometry(measures)
+            sc, t = self.server.scene, 0.004 * self._scale
+            frame = sc.add_frame("/aaa", show_axes=False, visible=visible)
+            self._aaa_handles = [
+                sc.add_line_segments("/aaa/centreline", g["centreline"], (30, 80, 230), thickness=t),
+                sc.add_line_segments("/aaa/max_section", g["ring"], (230, 30, 30), thickness=t),
+                sc.add_mesh_simple("/aaa/max_disc", g["disc_vertices"], g["disc_faces"], color=(230, 60, 60),
+                                   opacity=0.35, side="double", cast_shadow=False, receive_shadow=False),
+                sc.add_line_segments("/aaa/max_diameter", g["diameter"], (250, 200, 0), thickness=t),
+                sc.add_label("/aaa/label", f"max diameter {measures.max_diameter_mm:.1f} mm",
+                             position=tuple(g["label_at"]), anchor="bottom-left"),
+                frame,
+            ]
+            self._handles["aaa"] = frame
+            self.updates += 1
+        return g
+
     def set_visible(self, key, visible):
-        """Show or hide ``'voxels'``, ``'mesh'``, ``'carved'`` or ``'views'``."""
+        """Show or hide ``'voxels'``, ``'mesh'``, ``'carved'``, ``'aaa'`` or ``'views'``."""
         with self._lock:
             if key == "views":
                 self._views_visible = bool(visible)

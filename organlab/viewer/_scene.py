@@ -194,3 +194,40 @@ def human_bytes(n):
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000.0
     return f"{n:.1f} GB"
+
+
+def aaa_geometry(measures):
+    """What the scene draws of AAA measures (:class:`organlab.surface.AAAMeasures`), mm, world frame.
+
+    Returns
+    -------
+    dict
+        ``centreline`` (K-1, 2, 3) float32: consecutive centreline points as segments;
+        ``ring`` (M, 2, 3) float32: the closed contour of the maximum-diameter section;
+        ``disc_vertices`` (M + 1, 3) float32 and ``disc_faces`` (M, 3) uint32: that section
+        as a fan about the contour's centroid; ``diameter`` (1, 2, 3) float32: the two
+        contour points farthest apart (the maximum Feret diameter); ``label_at`` (3,) float64.
+    """
+    from scipy.spatial import ConvexHull
+    from scipy.spatial.distance import pdist, squareform
+
+    c = np.asarray(measures.centreline, np.float64)
+    sec = np.asarray(measures.max_section, np.float64)
+    if np.allclose(sec[0], sec[-1]):
+        sec = sec[:-1]  # find_contours closes the contour by repeating its first point
+    ring = np.stack([sec, np.roll(sec, -1, axis=0)], axis=1)
+    m = len(sec)
+    centre = sec.mean(axis=0)
+    faces = np.stack([np.zeros(m, np.int64), 1 + np.arange(m), 1 + (np.arange(m) + 1) % m], axis=1)
+    # the Feret diameter lies between two convex-hull vertices of the (planar) section
+    u, s, vt = np.linalg.svd(sec - centre, full_matrices=False)
+    hull = sec[ConvexHull((sec - centre) @ vt[:2].T).vertices]
+    i, j = np.unravel_index(np.argmax(squareform(pdist(hull))), (len(hull), len(hull)))
+    return {
+        "centreline": np.stack([c[:-1], c[1:]], axis=1).astype(np.float32),
+        "ring": ring.astype(np.float32),
+        "disc_vertices": np.vstack([centre, sec]).astype(np.float32),
+        "disc_faces": faces.astype(np.uint32),
+        "diameter": np.array([[hull[i], hull[j]]], np.float32),
+        "label_at": hull[i] + 0.1 * (hull[i] - centre),
+    }

@@ -1,0 +1,123 @@
+"""CaptureViewer: the live viewer following a capture (``organlab capture --view``).
+
+The capture calls :meth:`CaptureViewer.on_view` after each view it saves
+(``organlab.capture``'s ``on_view(index, angle_deg, image)`` hook).  The views
+come after the background frames and the board images on the table, so at the
+first view everything the viewer needs is in the session folder: the
+calibration (:func:`organlab.calibration.calibration_for`, the camera at table
+angle 0), the background model and the roi.  From then on each image is shown
+at its camera, its silhouette found and the hull carved view by view
+(:meth:`LiveView.capture_listener`).  A failure of the display is reported
+once and switches the viewer off; it never stops the capture.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ._live import LiveView
+
+
+class CaptureViewer:
+    """A :class:`LiveView` fed by a capture of the session folder ``session_dir``.
+
+    Parameters
+    ----------
+    session_dir : str or Path
+        The folder the capture writes (``session.json``).
+    voxel_size : float, mm
+        Voxel edge of the progressive hull (2 mm keeps each view's carving
+        short on a capture machine).
+    threshold : float, optional
+        Silhouette threshold, grey levels (automatic per view when omitted,
+        at least 5 x the background noise, as ``organlab reconstruct`` does).
+    tolerance : int
+        Views allowed to disagree before a voxel is carved.
+    host, port, verbose : as :class:`LiveView`
+    say : callable(str), optional
+        Where the note is printed when the viewer switches off (default: stderr).
+
+    Attributes
+    ----------
+    live : LiveView
+    camera0 : Camera or None
+        The calibrated camera at table angle 0 (after the first view).
+    error : str or None
+        Why the viewer stopped following the capture.
+    """
+
+    def __init__(self, session_dir, *, voxel_size=2.0, threshold=None, tolerance=0, host="127.0.0.1", port=8080,
+                 verbose=False, say=None):
+        if not voxel_size > 0:
+            raise ValueError(f"voxel_size must be > 0 mm, got {voxel_size}")
+        self.root = Path(session_dir)
+        self.voxel_size = float(voxel_size)
+        self.threshold = threshold
+        self.tolerance = int(tolerance)
+        self.say = say if say is not None else (lambda s: print(s, file=sys.stderr))
+        self.live = LiveView(host=host, port=port, verbose=verbose, label=f"organlab capture: {self.root.name}")
+        self.camera0 = None
+        self.error = None
+        self._listener = None
+
+    @property
+    def url(self):
+        return self.live.url
+
+    def on_view(self, index, angle_deg, image):
+        """The capture's ``on_view`` hook: show view ``index`` (taken at ``angle_deg``) and carve with it.
+
+        Parameters
+        ----------
+        index : int
+            The view's index in ``session.json`` (the views of an earlier run
+            of the same capture are shown from disk first).
+        angle_deg : float
+            Table angle, deg.
+        image : (H, W, 3) uint8
+        """
+        if self.error is not None:
+            return
+        try:
+            if self._listener is None:
+                self._start(index)
+            self._listener(index, angle_deg, image)
+        except Exception as e:  # noqa: BLE001 -- the display must never stop the capture; said once, with its cause
+            self.error = f"{type(e).__name__}: {e}" if not str(e) else str(e)
+            self.say(f"organlab capture: live view off: {self.error}")
+
+    def _start(self, index):
+        """Calibration, background and grid from the session so far; earlier views from disk."""
+        from ..calibration import calibration_for
+        from ..errors import CalibrationError
+        from ..grid import VoxelGrid
+        from ..session import load_session
+        from ..silhouette import background_model, background_noise
+
+        s = load_session(self.root)
+        cal, _ = calibration_for(s)
+        if cal.turntable is None:
+            raise CalibrationError(f"{s.json_path}: no turntable calibration to place the views "
+                                   "(capture with the board on the table)")
+        self.camera0 = cal.turntable.camera
+        background, floor = None, 0.0
+        if s.background_images:
+            frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
+            background, floor = background_model(frames), 5.0 * background_noise(frames)
+        self.live.set_grid(VoxelGrid.from_session(s, self.voxel_size), tolerance=self.tolerance)
+        listener = self.live.capture_listener(self.camera0, background=background, threshold=self.threshold,
+                                              floor=floor)
+        for k, v in enumerate(s.views[:index]):  # taken by an earlier run of this capture
+            listener(k, v.angle_deg, s.read(v.image, key=f"views[{k}].image"))
+        self._listener = listener
+
+    def stop(self):
+        """Stop the server (frees the port)."""
+        self.live.stop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
