@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .silhouette import as_arrays
+
 __all__ = ["AGREEMENT_LIMIT", "ViewAgreement", "model_mask", "view_agreement"]
 
 #: Largest accepted fraction of a silhouette left unexplained by the model
@@ -81,7 +83,8 @@ def model_mask(mesh, camera, shape):
     """
     from ._raster import fill_triangles
 
-    uv = camera.project(np.asarray(mesh.vertices, dtype=np.float64))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # vertices on or behind the camera plane
+        uv = camera.project(np.asarray(mesh.vertices, dtype=np.float64))
     return fill_triangles(uv, mesh.faces, shape)
 
 
@@ -114,8 +117,8 @@ def view_agreement(mesh, cameras, silhouettes, *, voxel_size, names=None, limit=
         The final model, world frame, mm.
     cameras : sequence of Camera
         One per view.
-    silhouettes : sequence of organlab.silhouette.Silhouette
-        One per view; compared at ``coverage >= 0.5``.
+    silhouettes : sequence of organlab.silhouette.Silhouette, or of (H, W) arrays
+        One per view; compared at ``coverage >= 0.5`` (a bool mask as it is).
     voxel_size : float, mm
         Resolution of the model: the outline tolerance is at least a voxel's
         projected size.
@@ -137,7 +140,7 @@ def view_agreement(mesh, cameras, silhouettes, *, voxel_size, names=None, limit=
     centre = verts.mean(axis=0) if len(verts) else np.zeros(3)
     views = []
     for cam, s in zip(cameras, silhouettes):
-        sil = np.asarray(s.coverage) >= 0.5
+        sil = np.asarray(as_arrays([s], "coverage")[0]) >= 0.5
         depth = float(cam.world_to_camera(centre[None])[0, 2])
         px_per_mm = cam.K[0, 0] / depth if depth > 0 else 0.0
         tol = max(2.0, voxel_size * px_per_mm)

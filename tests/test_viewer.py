@@ -156,12 +156,12 @@ def test_session_surface_finished_and_aaa_shown(app):
 
 
 def test_agreement_drops_for_a_wrong_camera(app):
-    from organlab.viewer._agreement import view_agreement
+    from organlab.agreement import view_agreement
 
     res = app.result
     cams = list(app.cameras)
     cams[0] = cams[6]  # view 0 paired with the camera of another view
-    ag = view_agreement(res.mesh, cams, res.masks)
+    ag = np.array([v["iou"] for v in view_agreement(res.mesh, cams, res.masks, voxel_size=2.0).views])
     assert ag[0] < res.agreement[0] - 0.05
     np.testing.assert_allclose(ag[1:], res.agreement[1:])
 

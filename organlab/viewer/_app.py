@@ -332,9 +332,11 @@ class SessionViewer:
         self.live.set_aaa(aaa, visible=self.controls.show_aaa)
 
     def _agreement(self, mesh, masks):
-        from ._agreement import view_agreement
+        """IoU of the mesh's projection with each view's silhouette, (n_views,) float64 (organlab.agreement)."""
+        from ..agreement import view_agreement
 
-        return view_agreement(mesh, self.cameras, masks)
+        agr = view_agreement(mesh, self.cameras, masks, voxel_size=self.settings.voxel_size)
+        return np.array([v["iou"] for v in agr.views], dtype=np.float64)
 
     def carving_views(self):
         """Carve-by-view of the shown result (computed once per result), grid.shape int16."""
@@ -349,9 +351,12 @@ class SessionViewer:
 
     def hull_in_view(self, j):
         """The shown mesh projected into view ``j``, (H, W) bool, or None."""
-        from ._agreement import hull_mask
+        from ..agreement import model_mask
 
-        return None if self.result is None else hull_mask(self.result.mesh, self.cameras[j])
+        if self.result is None:
+            return None
+        cam = self.cameras[j]
+        return model_mask(self.result.mesh, cam, (cam.height, cam.width))
 
     # ------------------------------------------------------------ --result
     def _show_result_folder(self, folder):
