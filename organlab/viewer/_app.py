@@ -282,10 +282,11 @@ class SessionViewer:
     def _color(self, occ, grid, masks, st, check):
         from .. import coloring
 
-        kw = {} if st.color_threshold is None else {"threshold": st.color_threshold}
+        # as organlab.pipeline colours: automatic threshold unless one is set, exposure, shading measure, guard
         kind = "voxel_coloring" if st.method == "coloring" else "space_carving"
         res = coloring.color_voxels(self.images, self.cameras, occ, grid, method=kind, masks=masks,
-                                    progress=lambda d, n: check(), **kw)
+                                    progress=lambda d, n: check(), **coloring.PIPELINE_OPTIONS,
+                                    threshold="auto" if st.color_threshold is None else st.color_threshold)
         return res.occupancy, res.colors, res.colored
 
     @staticmethod
