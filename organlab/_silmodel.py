@@ -170,6 +170,23 @@ class SilhouetteModel:
                 progress(i + 1, n)
         return out
 
+    def silhouette(self, i, *, threshold=None, **clean):
+        """The silhouette of view ``i`` at a threshold (grey levels; its automatic one when omitted).
+
+        Returns
+        -------
+        Silhouette
+        """
+        if not 0 <= i < len(self):
+            raise IndexError(f"view {i} out of range: {len(self)} views")
+        if threshold is None:
+            t = self.auto_thresholds()[i] if self.masks[i] is None else None
+        else:
+            t = float(threshold)
+            if not t > 0:
+                raise SessionError(f"threshold must be > 0 grey levels, got {t}")
+        return self._silhouette(i, t, clean)
+
     def _silhouette(self, i, t, clean):
         if self.masks[i] is not None:
             m = self.masks[i]

@@ -94,6 +94,11 @@ def test_rethreshold_on_an_unseen_scene_equals_fresh_runs():
         model.silhouettes(threshold=0.0)
     with pytest.raises(SessionError, match="view 0: the silhouette is empty"):
         model.silhouettes(threshold=1000.0)
+    # one view at a time (the viewer's per-view re-runs) gives the same silhouettes
+    for t in (None, 20.0):
+        _same([model.silhouette(i, threshold=t) for i in range(len(views))], model.silhouettes(threshold=t))
+    with pytest.raises(SessionError, match="threshold must be > 0"):
+        model.silhouette(0, threshold=-1.0)
 
 
 def _clean_whole_image(mask, open_radius=1, close_radius=2, min_area_fraction=0.05, fill_holes=True):

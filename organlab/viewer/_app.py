@@ -135,26 +135,23 @@ class SessionViewer:
 
     # ------------------------------------------------------------ silhouettes
     def _prepare_silhouettes(self):
-        """Cache what does not depend on the threshold: background model and difference images."""
-        from .. import silhouette as sil
+        """What does not depend on the threshold, once: organlab.silhouette.SilhouetteModel of the shown views."""
+        from ..errors import SessionError
+        from ..silhouette import SilhouetteModel
 
         s = self.session
-        self._given = {}
-        self._diffs = {}
-        need = [j for j, i in enumerate(self.view_ids) if s.views[i].mask is None]
-        for j, i in enumerate(self.view_ids):
-            if s.views[i].mask is not None:
-                m = s.read(s.views[i].mask, key=f"views[{i}].mask", grey=True) > 0
-                self._given[j] = m
-        self.auto_thresholds = [None] * len(self.view_ids)
-        if need:
+        masks = [s.read(s.views[i].mask, key=f"views[{i}].mask", grey=True) > 0 if s.views[i].mask is not None else None
+                 for i in self.view_ids]
+        frames = None
+        if any(m is None for m in masks):
+            if not s.background_images:
+                raise SessionError(f"{s.json_path}: background_images: organlab view thresholds views against "
+                                   "background frames; this session has none (a backdrop session): reconstruct it "
+                                   "and show the result with --result DIR")
             frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
-            self._bg = sil.background_model(frames)
-            floor = 5.0 * sil.background_noise(frames)
-            for j in need:
-                d = sil.difference(self.images[j], self._bg)
-                self._diffs[j] = d
-                self.auto_thresholds[j] = sil.auto_threshold(d, floor=floor)
+        names = [f"{s.json_path}: views[{i}] ({s.relpath(s.views[i].image)})" for i in self.view_ids]
+        self._model = SilhouetteModel(self.images, frames, masks=masks, names=names)
+        self.auto_thresholds = self._model.auto_thresholds()
         autos = [t for t in self.auto_thresholds if t is not None]
         self.auto_threshold = float(np.median(autos)) if autos else None
         self._sil_cache = {}
@@ -167,17 +164,12 @@ class SessionViewer:
         mask : (H, W) bool
         coverage : (H, W) float32
         """
-        from .. import silhouette as sil
-
-        if j in self._given:
-            m = self._given[j]
-            return m, m.astype(np.float32)
         t = self.auto_thresholds[j] if threshold is None else float(threshold)
-        key = (j, round(t, 4))
+        key = (j, None if t is None else round(t, 4))
         hit = self._sil_cache.get(key)
         if hit is None:
-            mask = sil.clean_mask(self._diffs[j] > t)
-            hit = (mask, sil.coverage(self.images[j], self._bg, mask))
+            sil = self._model.silhouette(j, threshold=t)
+            hit = (sil.mask, sil.coverage)
             if len(self._sil_cache) > 4 * len(self.view_ids):
                 self._sil_cache.clear()
             self._sil_cache[key] = hit
