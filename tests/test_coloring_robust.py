@@ -206,9 +206,10 @@ def test_dino_backdrop_keying_matches_the_authors_masks(dino):
 @needs_dino
 @pytest.mark.slow
 def test_dino_as_a_backdrop_session(dino, tmp_path):
-    """The photos as a session with a border backdrop (no masks, no frames), through organlab.pipeline at 2 mm."""
+    """The photos as a session with a border backdrop (no masks, no frames), through organlab.pipeline at 1 mm."""
     import shutil
 
+    from organlab.datasets import middlebury_silhouettes
     from organlab.pipeline import reconstruct
     from organlab.session import write_json
 
@@ -226,12 +227,21 @@ def test_dino_as_a_backdrop_session(dino, tmp_path):
         "roi": {"min": (data.bbox[0] - 4.0).tolist(), "max": (data.bbox[1] + 4.0).tolist()},
         "backdrop": {"color": "border"},
     })
-    rec = reconstruct(tmp_path, voxel_size=2.0)
+    rec = reconstruct(tmp_path, voxel_size=1.0)
     assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
     # the marching-cubes surface: this measures the silhouettes (the finished, remeshed surface rounds the
-    # dinosaur's thin parts at 2 mm: mean IoU 0.925 against 0.943 for the raw one)
-    ious = [((r := render_silhouette(c, mesh=rec.raw_mesh)) & m).sum() / (r | m).sum() for c, m in zip(cams, masks)]
-    print(f"backdrop session, 2 mm: mean IoU {np.mean(ious):.4f}, min {np.min(ious):.4f}")
-    # measured 2 mm: mean 0.943; 1 mm: 0.950 (issue 13's 0.975 NOT met: the authors' silhouettes are grown
-    # by 3 px, docs/benchmarks.md); Li's threshold against a black frame reached 0.948 at 1 mm
-    assert np.mean(ious) > 0.935 and rec.mesh.is_watertight
+    # dinosaur's thin parts)
+    renders = [render_silhouette(c, mesh=rec.raw_mesh) for c in cams]
+    ious = [(r & m).sum() / (r | m).sum() for r, m in zip(renders, masks)]
+    # like with like: the authors' silhouettes are their recipe (grey > 0.19, dilate 10 px, erode 7 px), i.e. a
+    # closing and a conservative growth of 3 px beyond the outline; the same recipe applied to our hull's outline
+    grown = middlebury_silhouettes([r.astype(np.uint8) * 255 for r in renders], threshold=0.5)
+    fair = [(g & m).sum() / (g | m).sum() for g, m in zip(grown, masks)]
+    print(f"backdrop session, 1 mm: mean IoU {np.mean(ious):.4f} (min {np.min(ious):.4f}); "
+          f"with the authors' growth {np.mean(fair):.4f} (min {np.min(fair):.4f})")
+    # measured 1 mm: raw 0.950 (min 0.936), issue 13's target 0.975 NOT met by the raw outline: the authors'
+    # 3 px growth is ~5000 px per view (their masks against the hull from their own masks: 0.986).  With the
+    # same growth applied to our outline: 0.979 (min 0.960); what remains is the dark holes their threshold
+    # leaves in views 2-4 (keying fills them).  Before keying (Li against a black frame): 0.948 raw.
+    assert np.mean(ious) > 0.94 and np.mean(fair) > 0.975 and min(fair) > 0.95
+    assert rec.mesh.is_watertight
