@@ -18,8 +18,9 @@ from ._common import DEFAULT_SUPPORT, DEFAULT_THRESHOLD, ColoringResult, Visibil
 from ._visibility import check_ordinal_visibility
 
 #: How the pipeline colours: a measure blind to view-dependent shading and
-#: highlights, exposure normalised per view, the silhouette guard on.
-PIPELINE_OPTIONS = {"measure": "shading", "exposure": True, "guard": True}
+#: highlights, exposure normalised per view, the silhouette guard on, and the
+#: support grows as the threshold goes below the automatic one (``'auto'``).
+PIPELINE_OPTIONS = {"measure": "shading", "exposure": True, "guard": True, "support": "auto"}
 
 
 def report_entry(result, candidates, grid):
@@ -40,6 +41,7 @@ def report_entry(result, candidates, grid):
         "restored_by_guard": result.n_restored,
         "noise": result.noise,
         "exposure_gains": None if result.gains is None else [round(g, 4) for g in result.gains],
+        "support": result.support,
     }
 
 __all__ = [

@@ -15,7 +15,7 @@ from ._common import (
     _completeness_rule,
 )
 from ._methods import _owned, _space_carving, _surface, _voxel_coloring
-from ._auto import auto_threshold, exposure_gains, image_noise, normalise
+from ._auto import auto_support, auto_threshold, exposure_gains, image_noise, normalise
 from ._auto import guard as _guard
 from ._statistics import _rgb, _Stats
 
@@ -82,14 +82,19 @@ def color_voxels(
         ``'shading'``: the spread of the view colours about a Lambertian
         shading curve of the table angle (turntable, lamp fixed to the
         camera), robust to one deviant view.
-    support : int
+    support : int or 'auto'
         Spatial support of a carve: an inconsistent voxel is carved only if
         at least ``support`` inconsistent voxels (itself included) lie in its
         3 x 3 neighbourhood within its layer (3 x 3 x 3 for space carving).
         ``1`` is the plain per-voxel test.  Concavities are regions; a lone
         inconsistent voxel on a true surface (a texture edge, a crease) is
         kept, which stops it from opening a hole that the sweep would then
-        dig deeper.
+        dig deeper.  ``'auto'``: ``DEFAULT_SUPPORT`` at and above the
+        automatic threshold, one more voxel per robust deviation of the
+        candidates' surface measure the threshold lies below it, at most 9
+        (:mod:`organlab.coloring._auto`): a low threshold is exceeded by the
+        true surface's residuals at scattered voxels, a concavity's lid as a
+        region.
     progress : callable(done, total), optional
         Called after every layer (or pass).
     exposure : bool
@@ -139,14 +144,17 @@ def color_voxels(
         raise ValueError(f"measure must be one of {_MEASURES}, got {measure!r}")
     if guard and masks is None:
         raise ValueError("guard=True needs the silhouettes (masks=)")
-    if isinstance(support, bool) or not isinstance(support, (int, np.integer)) or not 1 <= support <= 27:
-        raise ValueError(f"support must be an integer in 1..27 (voxels), got {support!r}")
+    auto_sup = isinstance(support, str) and support == "auto"
+    if not auto_sup and (isinstance(support, bool) or not isinstance(support, (int, np.integer)) or not 1 <= support <= 27):
+        raise ValueError(f"support must be an integer in 1..27 (voxels) or 'auto', got {support!r}")
     progress = progress or (lambda done, total: None)
 
     _Stats.azimuth = np.array([np.arctan2(c.center[1], c.center[0]) for c in cameras]) if measure == "shading" else None
     _Stats.measure = measure
     try:
-        stack, threshold, noise, gains = _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix)
+        stack, threshold, noise, gains, support = _prepare(
+            stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix, support
+        )
         run = _voxel_coloring if method == "voxel_coloring" else _space_carving
         occ, colors, colored, counts, sweep, iterations = run(
             stack, cams, cameras, bg, candidates, grid, threshold, measure, min_pix, min_frac, support, progress
@@ -176,26 +184,33 @@ def color_voxels(
         n_restored=n_restored,
         noise=noise,
         gains=gains,
+        support=support,
     )
 
 
-def _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix):
-    """Exposure normalisation and the automatic threshold: (stack, threshold, noise, gains)."""
+def _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, measure, min_pix, support):
+    """Exposure normalisation, the automatic threshold and support: (stack, threshold, noise, gains, support)."""
     noise = gains = None
-    if not (automatic or exposure) or not candidates.any():
-        return stack, (float(threshold) if not automatic else 1.0), noise, gains
+    auto_sup = isinstance(support, str)
+    if not (automatic or exposure or auto_sup) or not candidates.any():
+        return stack, (float(threshold) if not automatic else 1.0), noise, gains, (DEFAULT_SUPPORT if auto_sup else support)
     ijk = np.argwhere(_surface(candidates)).astype(np.int64)
     st = _owned(stack, cams, bg, ijk, grid)
     if exposure:
         g = exposure_gains(st)
         gains = tuple(float(x) for x in g)
         stack = normalise(stack, g)
-        if automatic:
+        if automatic or auto_sup:
             st = _owned(stack, cams, bg, ijk, grid)
-    if automatic:
+    if automatic or auto_sup:
         noise = image_noise(stack)
-        threshold, _ = auto_threshold(st, measure, noise, min_pix)
-    return stack, float(threshold), noise, gains
+        t_auto, details = auto_threshold(st, measure, noise, min_pix)
+        threshold = t_auto if automatic else threshold
+        if auto_sup:
+            support = auto_support(threshold, details, DEFAULT_SUPPORT)
+        if not automatic:
+            noise = None
+    return stack, float(threshold), noise, gains, support
 
 
 

@@ -11,6 +11,15 @@
   median + ``AUTO_K`` robust deviations (1.4826 MAD), and at least
   ``NOISE_K`` times the noise; the hull's lid voxels over a concavity stand
   out above it;
+* automatic support: the hull surface's measure has a robust spread (its
+  median and MAD, as for the automatic threshold); the fewer robust
+  deviations ``z`` a threshold lies above that median, the more of the
+  consistent surface's voxels exceed it by chance (self shadows, highlights,
+  scattered over the true surface), while a concavity's lid exceeds it as a
+  region.  A carve then needs ``DEFAULT_SUPPORT + ceil(AUTO_K - z)``
+  inconsistent voxels of its 3 x 3 neighbourhood (one more per deviation
+  below the automatic threshold's ``AUTO_K``), between ``DEFAULT_SUPPORT``
+  and 9: the plain support at and above the automatic threshold;
 * guard: the pixels of a view's silhouette that the hull's voxels explained
   (the union of their projected boxes covers them) must stay explained; the
   carved voxels whose projected bounding box touches a pixel the carved model
@@ -85,6 +94,15 @@ def auto_threshold(st, measure, noise, min_pix):
     mad = 1.4826 * float(np.median(np.abs(s - med)))
     t = max(med + AUTO_K * mad, NOISE_K * noise, 1.0)
     return t, {"noise": noise, "median": med, "mad": mad}
+
+
+def auto_support(threshold, details, base, most=9):
+    """The support for ``threshold`` from the surface's median and robust deviation (``details`` of auto_threshold)."""
+    med, mad = details.get("median"), details.get("mad")
+    if med is None or not mad or mad <= 0:
+        return int(base)
+    z = (float(threshold) - med) / mad
+    return int(np.clip(base + np.ceil(AUTO_K - z - 1e-6), base, most))  # 1e-6: the automatic threshold itself -> base
 
 
 def guard(occ, candidates, cameras, grid, masks):

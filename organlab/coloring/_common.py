@@ -67,6 +67,8 @@ class ColoringResult:
         Measured pixel noise, grey levels (automatic threshold only).
     gains : tuple of float or None
         Per-view exposure gains divided out (``exposure=True``).
+    support : int
+        The spatial support used (resolved from ``support='auto'``).
     """
 
     occupancy: np.ndarray
@@ -87,6 +89,7 @@ class ColoringResult:
     n_restored: int = 0
     noise: float | None = None
     gains: tuple | None = None
+    support: int = DEFAULT_SUPPORT
 
     def stats(self):
         """The scalar fields as a JSON-ready dict."""
@@ -106,6 +109,7 @@ class ColoringResult:
             "n_restored": self.n_restored,
             "noise": self.noise,
             "exposure_gains": None if self.gains is None else list(self.gains),
+            "support": self.support,
         }
 
 
