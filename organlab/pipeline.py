@@ -266,8 +266,10 @@ def reconstruct(
         )
     colors = colored = coloring_info = None
     if method != "hull":
+        from .coloring import report_entry
+
         res = stages.run("coloring", _color, images, cameras, occupancy, grid, sils, method, color_threshold)
-        coloring_info = _coloring_report(res, occupancy, grid)
+        coloring_info = report_entry(res, occupancy, grid)
         occupancy, colors, colored = res.occupancy, res.colors, res.colored
     raw_mesh, mesh, aaa, extra = stages.run("surface", _surface, session, occupancy, field, colors, colored, grid,
                                             finish=finish, measure=measure)
@@ -339,11 +341,6 @@ def _color(images, cameras, occupancy, grid, sils, method, color_threshold, *, p
     return color_voxels(images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=progress,
                         threshold="auto" if color_threshold is None else color_threshold, **PIPELINE_OPTIONS)
 
-
-def _coloring_report(res, hull, grid):
-    from .coloring import report_entry
-
-    return report_entry(res, hull, grid)
 
 
 def _report(session, grid, occupancy, mesh, cameras, cal, how, sils, timings, method, hull):
