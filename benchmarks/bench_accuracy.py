@@ -45,7 +45,7 @@ def main():
 
 def exact_silhouettes(root):
     """The hull of the rendered (exact, noise-free) silhouettes: raw and finished mesh volume errors."""
-    from organlab._render import coverage
+    from organlab.synthetic._render import coverage
     from organlab.carving import hull_field
     from organlab.grid import VoxelGrid
     from organlab.pipeline import session_cameras

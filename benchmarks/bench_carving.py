@@ -28,6 +28,7 @@ import tempfile
 import time
 
 import numpy as np
+from _common import vm_mb  # benchmarks/_common.py (scripts run from this folder)
 
 N_VIEWS = 36
 GRIDS = {"1mm": 1.0, "0.5mm": 0.5}
@@ -164,14 +165,8 @@ METHODS = {"numpy reference": run_reference, "organlab carve": run_organlab, "op
 def _peak_rss_mb():
     """Peak resident memory of this process, MB (VmHWM: this program only;
     ru_maxrss would include the parent's memory from before the exec)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:  # pragma: no cover - not Linux
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak = vm_mb("VmHWM")
+    return peak if peak == peak else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _child(method, voxel_size, scene_file, repeat, out_file):

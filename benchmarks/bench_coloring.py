@@ -4,7 +4,7 @@
 the session's ``calibration.json`` (as ``organlab calibrate`` writes it), or
 calibrated in memory from the session's board images when it is missing (as
 :func:`organlab.pipeline.reconstruct` does), silhouettes by background subtraction
-(:func:`organlab.silhouette.session_silhouettes`), visual hull by
+(:func:`organlab.silhouette.silhouettes`), visual hull by
 :func:`organlab.carving.carve` at 1 mm, then
 :func:`organlab.coloring.color_voxels` with its defaults.
 
@@ -28,29 +28,12 @@ import os
 import time
 from pathlib import Path
 
+from _common import session_cameras, vm_mb  # benchmarks/_common.py (scripts run from this folder)
+
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
-
-def _vm(key):
-    """A ``/proc/self/status`` memory figure in MB (VmHWM: peak resident, VmRSS: now)."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
-def _cameras(session):
-    """The views' cameras as the pipeline gets them; calibrates in memory when calibration.json is missing."""
-    from organlab.calibration import calibration_for
-
-    t0 = time.perf_counter()
-    cal, how = calibration_for(session)
-    source = {"reused": "from calibration.json", "session.json": "given in session.json"}.get(
-        how, f"calibrated from the session's board images ({time.perf_counter() - t0:.1f} s, not written)")
-    return cal.cameras(session), source
 
 
 def main():
@@ -64,13 +47,13 @@ def main():
     from organlab import carving, coloring
     from organlab.grid import VoxelGrid
     from organlab.session import load_session
-    from organlab.silhouette import session_silhouettes
+    from organlab.silhouette import silhouettes
 
     session = load_session(a.session)
-    cameras, source = _cameras(session)
+    cameras, source = session_cameras(session)
     images = [session.read(v.image, key=f"views[{i}].image") for i, v in enumerate(session.views)]
     t0 = time.perf_counter()
-    masks = [s.mask for s in session_silhouettes(session)]
+    masks = [s.mask for s in silhouettes(session)]
     t_sil = time.perf_counter() - t0
     grid = VoxelGrid.from_roi(session.roi_min, session.roi_max, a.voxel_size)
     t0 = time.perf_counter()
@@ -82,7 +65,7 @@ def main():
     print(f"grid      {grid.shape} at {grid.voxel_size:g} mm ({grid.n_voxels / 1e6:.2f} M voxels); numba threads {threads}")
     print(f"inputs    silhouettes {t_sil:.2f} s, hull (carve) {t_hull:.2f} s, {int(hull.sum())} hull voxels")
 
-    hwm_before = _vm("VmHWM")
+    hwm_before = vm_mb("VmHWM")
     res = coloring.color_voxels(images, cameras, hull, grid, masks=masks, method=a.method)  # warm-up
     times, cpu = [], []
     for _ in range(max(1, a.repeat)):
@@ -90,7 +73,7 @@ def main():
         res = coloring.color_voxels(images, cameras, hull, grid, masks=masks, method=a.method)
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
-    hwm_after = _vm("VmHWM")
+    hwm_after = vm_mb("VmHWM")
 
     ref = session.reference.get("volume_mm3")
     v_hull = grid.volume_of(hull)

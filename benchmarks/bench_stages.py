@@ -7,7 +7,7 @@ memory from its board images when that file is missing (as
 ``reconstruct`` runs them with ``hull='subvoxel'``:
 
 * ``read``: decoding the 36 view images;
-* ``silhouettes``: :func:`organlab.silhouette.session_silhouettes` on the
+* ``silhouettes``: :func:`organlab.silhouette.silhouettes` on the
   decoded images (background frames read, background model, subtraction,
   Li's threshold per view, clean-up, coverage);
 * ``rethreshold``: :meth:`organlab.silhouette.SilhouetteModel.silhouettes`
@@ -39,16 +39,10 @@ import statistics
 import time
 from pathlib import Path
 
+from _common import session_cameras, vm_mb  # benchmarks/_common.py (scripts run from this folder)
+
 ROOT = Path(__file__).resolve().parents[1]
 
-
-def _vm(key):
-    """A ``/proc/self/status`` memory figure in MB (VmHWM: peak resident, VmRSS: now)."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def _reset_peak():
@@ -61,19 +55,6 @@ def _reset_peak():
         return False
 
 
-def _cameras(session):
-    from organlab import pipeline
-
-    calibration, source = session.calibration, "from calibration.json"
-    if pipeline._needs_calibration(session):
-        from organlab import calibration as calib
-
-        t0 = time.perf_counter()
-        calibration = calib.calibrate_session(session)
-        source = f"calibrated in memory from the session's board images ({time.perf_counter() - t0:.1f} s, not timed)"
-    return pipeline.session_cameras(session, calibration), source
-
-
 def measure(fn, repeat):
     """Run ``fn`` once to warm up, then ``repeat`` times.
 
@@ -82,7 +63,7 @@ def measure(fn, repeat):
     fn()
     walls, cpus = [], []
     _reset_peak()
-    rss0 = _vm("VmRSS")
+    rss0 = vm_mb("VmRSS")
     result = None
     for _ in range(repeat):
         result = None
@@ -90,7 +71,7 @@ def measure(fn, repeat):
         result = fn()
         walls.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
-    peak = _vm("VmHWM")
+    peak = vm_mb("VmHWM")
     return result, min(walls), min(cpus), peak, peak - rss0
 
 
@@ -104,10 +85,10 @@ def main():
     from organlab import carving
     from organlab.grid import VoxelGrid
     from organlab.session import load_session
-    from organlab.silhouette import SilhouetteModel, session_silhouettes
+    from organlab.silhouette import SilhouetteModel, silhouettes
 
     session = load_session(a.session)
-    cameras, source = _cameras(session)
+    cameras, source = session_cameras(session)
     print(f"session {session.name}: {len(session.views)} views, cameras {source}")
     print(f"time: best of {a.repeat} after a warm-up (shared machine); memory: peak RSS during the stage, "
           f"and what it adds (MB)")
@@ -119,7 +100,7 @@ def main():
 
     images, *r = measure(read, a.repeat)
     rows.append(("read", "-", "-", *r))
-    sils, *r = measure(lambda: session_silhouettes(session, images=images), a.repeat)
+    sils, *r = measure(lambda: silhouettes(session, images=images), a.repeat)
     rows.append(("silhouettes", "-", "-", *r))
     model = SilhouetteModel.from_session(session, images=images)
     model.silhouettes()
