@@ -7,21 +7,17 @@ lamp, known cameras) and the real dinoSparseRing photos (skipped when
 docs/benchmarks.md; the tests use 2 mm.
 """
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-import organlab
 from organlab.coloring import PIPELINE_OPTIONS, color_voxels
 from organlab.coloring._statistics import _shading_fit_std, _trimmed_std
 from organlab.datasets import render_silhouette
+from tests._shared_data import DINO as DATA
+from tests._shared_data import needs_dino
 from tests.test_coloring import SLOT, _Boxes, _hull, _render, _ring, _smooth
 
-# ../shared/data beside the repository; ORGANLAB_SHARED_DATA overrides it (e.g. from a git worktree)
-DATA = Path(os.environ.get("ORGANLAB_SHARED_DATA", Path(organlab.__file__).resolve().parents[2] / "shared" / "data"))
-DATA = DATA / "dinoSparseRing"
 
 
 @pytest.fixture(scope="module")
@@ -173,7 +169,6 @@ def test_grooved_specimen_under_the_hard_lamp():
     assert r[0.5][0] > 0.2 and r[2.0][0] > 0.3
 
 
-needs_dino = pytest.mark.skipif(not (DATA / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DATA}")
 
 
 @pytest.fixture(scope="module")

@@ -22,19 +22,17 @@ Mesh volumes: field 119.0 / 119.2 cm^3 (0.13 % apart), bbox voxels 161.7 /
 140.5 cm^3.
 """
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-import organlab
 from organlab.carving import carve_reference, hull_field
 from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes, render_silhouette
 from organlab.grid import VoxelGrid
 from organlab.surface import mesh_from_volume
 
-DATA = Path(organlab.__file__).resolve().parents[2] / "shared" / "data" / "dinoSparseRing"
-needs_data = pytest.mark.skipif(not (DATA / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DATA}")
+from tests._shared_data import DINO as DATA
+from tests._shared_data import needs_dino as needs_data
 
 
 @pytest.fixture(scope="module")

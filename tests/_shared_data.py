@@ -1,0 +1,15 @@
+"""Where the optional real data of ../shared lies, for the tests that use it (they skip, naming the path, without it).
+
+``../shared/data`` beside the repository; ``ORGANLAB_SHARED_DATA`` overrides it (e.g. from a git worktree).
+"""
+
+import os
+from pathlib import Path
+
+import pytest
+
+import organlab
+
+SHARED_DATA = Path(os.environ.get("ORGANLAB_SHARED_DATA", Path(organlab.__file__).resolve().parents[2] / "shared" / "data"))
+DINO = SHARED_DATA / "dinoSparseRing"
+needs_dino = pytest.mark.skipif(not (DINO / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DINO}")
