@@ -1,10 +1,13 @@
 """Prepared views for silhouettes at any threshold (:class:`SilhouetteModel`).
 
-Re-exported by :mod:`organlab.silhouette`: the background model, the noise
-floor and each view's difference image are computed once; a new threshold
-then only thresholds, cleans and computes the coverage (the viewer's and the
-threshold widget's slider).  The per-view steps run in a few threads: cv2,
-numpy and the numba kernels release the GIL.
+Re-exported by :mod:`organlab.silhouette`: the background (a model of the
+empty frames, or a backdrop colour), the noise floor and each view's
+difference image are computed once; a new threshold then only thresholds,
+cleans and computes the coverage (the viewer's and the threshold widget's
+slider).  Both ways of finding a silhouette live behind it: background
+subtraction (grey levels) and, for a session with a ``backdrop``, keying in
+CIE Lab (Delta E, :mod:`organlab._keying`).  The per-view steps run in a few
+threads: cv2, numpy and the numba kernels release the GIL.
 """
 
 from __future__ import annotations
@@ -26,7 +29,8 @@ class SilhouetteModel:
     thresholds, cleans and computes the sub-pixel coverage, so that the viewer
     and the threshold widget can re-run the stage on every slider move.
     ``SilhouetteModel.from_session(s).silhouettes(threshold=t)`` equals
-    ``silhouettes(s, threshold=t)``.
+    ``silhouettes(s, threshold=t)``, for sessions with background frames and
+    for sessions with a ``backdrop`` alike.
 
     Parameters
     ----------
@@ -42,17 +46,34 @@ class SilhouetteModel:
         Given silhouettes (used as they are), one per view or None.
     names : sequence of str, optional
         How errors name each view (default ``"view i"``).
+    backdrop : dict, optional
+        A session's ``backdrop`` (``{"color": "frames" | "border" | [r, g, b],
+        "shadows": bool}``): the views are keyed in CIE Lab against it
+        (:mod:`organlab._keying`) instead of subtracted from the frames'
+        model; ``"frames"`` needs ``background_frames``, ``"border"`` takes
+        the median colour of the views' border bands.  ``mode`` does not
+        apply then.
 
     Attributes
     ----------
-    background : (H, W) or (H, W, 3) float32 or None
-    floor : float, grey levels
-        Lowest automatic threshold: 5 times :func:`background_noise`.
+    background : (H, W) or (H, W, 3) float32, or (3,) float32 (a backdrop colour), or None
+    keyed : bool
+        Whether the views are keyed against a backdrop.
+    units : str
+        The threshold's units: ``'grey levels'`` (subtraction) or
+        ``'Delta E'`` (CIE76 colour difference, keying).
+    floor : float
+        Lowest automatic threshold (subtraction: 5 times
+        :func:`background_noise`; keying: 0, its rule has its own noise term).
     differences : list of (H, W) float32 or None
-        Per view, :func:`difference` of the image and the background.
+        Per view, :func:`difference` of the image and the background, or
+        the keyed views' Delta E (exposure divided out, cast shadows 0).
+    gains : list of float or None
+        Keyed views' exposure gains against the background (1 otherwise).
     """
 
-    def __init__(self, images, background_frames=None, *, mode="color", background="median", masks=None, names=None):
+    def __init__(self, images, background_frames=None, *, mode="color", background="median", masks=None, names=None,
+                 backdrop=None):
         images = list(images)
         n = len(images)
         masks = [None] * n if masks is None else list(masks)
@@ -66,23 +87,47 @@ class SilhouetteModel:
         for i in need:
             if self.images[i] is None:
                 raise ValueError(f"{self.names[i]}: no image and no given mask")
+        self.backdrop = None if backdrop is None else dict(backdrop)
+        self.keyed = self.backdrop is not None
+        self.units = "Delta E" if self.keyed else "grey levels"
         self.background = None
         self.floor = 0.0
         self.differences = [None] * n
+        self.gains = [1.0] * n
+        self._shadow = [0.0] * n
         self._auto = [None] * n
+        self._auto_info = [None] * n
         if need:
-            if background_frames is None:
-                raise ValueError("background frames are needed for the views without a given mask")
-            frames = list(background_frames)
-            self.background = background_model(frames, method=background)
-            self.floor = 5.0 * background_noise(frames)
+            self.background = self._background(background_frames, background, [self.images[i] for i in need])
+            if not self.keyed:
+                self.floor = 5.0 * background_noise(list(background_frames))
             diffs = _map_views(lambda i: self._difference(i), need)
             for i, d in zip(need, diffs):
                 self.differences[i] = d
 
+    def _background(self, frames, method, images):
+        """The background the views are compared with: the frames' model, or a backdrop colour."""
+        color = self.backdrop.get("color", "frames") if self.keyed else "frames"
+        if color == "border":
+            from ._keying import estimate_backdrop
+
+            return estimate_backdrop(images)
+        if color != "frames":
+            return np.asarray(color, np.float32)
+        if frames is None:
+            raise ValueError("background frames are needed for the views without a given mask")
+        return background_model(list(frames), method=method)
+
     def _difference(self, i):
         try:
-            return difference(self.images[i], self.background, mode=self.mode)
+            if not self.keyed:
+                return difference(self.images[i], self.background, mode=self.mode)
+            from ._keying import key_distance
+
+            d, self.gains[i], sh = key_distance(self.images[i], self.background,
+                                                shadows=bool(self.backdrop.get("shadows", True)))
+            self._shadow[i] = float(sh.mean())
+            return d
         except ValueError as e:
             raise SessionError(f"{self.names[i]}: {e}") from None
 
@@ -115,21 +160,34 @@ class SilhouetteModel:
                 masks.append(None)
                 imgs.append(images[i] if images is not None else session.read(view.image, key=f"views[{i}].image"))
         frames = None
-        if any(m is None for m in masks):
+        backdrop = getattr(session, "backdrop", None)
+        needs_frames = backdrop is None or backdrop.get("color") == "frames"
+        if any(m is None for m in masks) and needs_frames:
             frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
-        return cls(imgs, frames, mode=mode, background=background, masks=masks, names=names)
+        return cls(imgs, frames, mode=mode, background=background, masks=masks, names=names, backdrop=backdrop)
 
     def __len__(self):
         return len(self.images)
 
     def auto_thresholds(self):
-        """Each view's automatic threshold (Li's, at least :attr:`floor`), None for given masks; cached."""
+        """Each view's automatic threshold, None for given masks; cached.
+
+        Subtraction: Li's, at least :attr:`floor`.  Keying: from the border
+        band's noise and clutter, capped by Li's
+        (:func:`organlab._keying.auto_key_threshold`).
+        """
         todo = [i for i in range(len(self)) if self.masks[i] is None and self._auto[i] is None]
         for i, t in zip(todo, _map_views(self._auto_threshold, todo)):
             self._auto[i] = t
         return list(self._auto)
 
     def _auto_threshold(self, i):
+        if self.keyed:
+            from ._keying import auto_key_threshold
+
+            t, *reasons = auto_key_threshold(self.differences[i])
+            self._auto_info[i] = (float(t), *reasons)
+            return float(t)
         try:
             return auto_threshold(self.differences[i], floor=self.floor)
         except ValueError as e:
@@ -141,11 +199,12 @@ class SilhouetteModel:
         Parameters
         ----------
         threshold : float, optional
-            Grey levels, the same for every view; the automatic threshold per
-            view when omitted.
+            In :attr:`units`, the same for every view; the automatic
+            threshold per view when omitted.
         progress : callable(done, total), optional
         **clean
-            Options of :func:`clean_mask`.
+            Options of :func:`clean_mask` (subtraction; keying cleans with
+            radii from the image scale, :func:`organlab._keying.clean_scaled`).
 
         Returns
         -------
@@ -159,9 +218,7 @@ class SilhouetteModel:
         if threshold is None:
             thresholds = self.auto_thresholds()
         else:
-            if not float(threshold) > 0:
-                raise SessionError(f"threshold must be > 0 grey levels, got {float(threshold)}")
-            thresholds = [float(threshold)] * len(self)
+            thresholds = [self._checked(threshold)] * len(self)
         n = len(self)
         out = []
         for i, sil in enumerate(_map_views(lambda i: self._silhouette(i, thresholds[i], clean), range(n))):
@@ -171,7 +228,7 @@ class SilhouetteModel:
         return out
 
     def silhouette(self, i, *, threshold=None, **clean):
-        """The silhouette of view ``i`` at a threshold (grey levels; its automatic one when omitted).
+        """The silhouette of view ``i`` at a threshold (in :attr:`units`; its automatic one when omitted).
 
         Returns
         -------
@@ -182,21 +239,47 @@ class SilhouetteModel:
         if threshold is None:
             t = self.auto_thresholds()[i] if self.masks[i] is None else None
         else:
-            t = float(threshold)
-            if not t > 0:
-                raise SessionError(f"threshold must be > 0 grey levels, got {t}")
+            t = self._checked(threshold)
         return self._silhouette(i, t, clean)
+
+    def _checked(self, threshold):
+        t = float(threshold)
+        if not t > 0:
+            raise SessionError(f"threshold must be > 0 {self.units}, got {t}")
+        return t
 
     def _silhouette(self, i, t, clean):
         if self.masks[i] is not None:
             m = self.masks[i]
             return Silhouette(m, m.astype(np.float32), None, "given")
+        if self.keyed:
+            return self._keyed(i, t, clean)
         mask = clean_mask(self.differences[i] > t, **clean)
         if not mask.any():
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"
             )
         return Silhouette(mask, coverage(self.images[i], self.background, mask), t, "subtraction")
+
+    def _keyed(self, i, t, clean):
+        from ._keying import KeyInfo, clean_scaled
+
+        if clean:
+            raise ValueError(f"clean-up options {sorted(clean)} do not apply to keyed views (a backdrop session): "
+                             "keying scales its clean-up to the image")
+        mask, r = clean_scaled(self.differences[i] > t)
+        if not mask.any():
+            raise SessionError(f"{self.names[i]}: the keyed silhouette is empty; check backdrop.color or lower --threshold")
+        auto = self._auto_info[i]
+        if auto is not None and auto[0] == t:
+            reason, noise, clutter, li = auto[1:]
+        else:
+            reason, noise, clutter, li = "given", None, None, None
+        info = KeyInfo(float(t), reason, noise, clutter, li, self.gains[i], self._shadow[i], r)
+        bg = self.background
+        full = np.broadcast_to(bg, np.shape(self.images[i])) if np.ndim(bg) == 1 else bg
+        cov = coverage(self.images[i], np.asarray(full, np.float32) * self.gains[i], mask)
+        return Silhouette(mask, cov, float(t), "backdrop", info.to_dict())
 
 
 def _map_views(fn, indices):

@@ -415,7 +415,9 @@ def silhouettes(
 
     A view with a ``mask`` in ``session.json`` uses it as given (non-zero =
     specimen); the others are found by background subtraction against the
-    model of ``background_images``.
+    model of ``background_images`` or, when the session declares a
+    ``backdrop``, by keying against it in CIE Lab (:mod:`organlab._keying`).
+    Through :class:`SilhouetteModel`, as the viewer and the widgets.
 
     Parameters
     ----------
@@ -424,7 +426,8 @@ def silhouettes(
         The views' images, already read (one per view); read from the session
         when omitted.
     threshold : float, optional
-        Grey levels, the same for every view; :func:`auto_threshold` per view when omitted.
+        The same for every view, grey levels (subtraction) or Delta E
+        (keying); automatic per view when omitted.
     mode : {'color', 'grey'}
     background : {'median', 'mean'}
     progress : callable(done, total), optional
@@ -435,49 +438,8 @@ def silhouettes(
     """
     if not isinstance(session, Session):
         session = load_session(session)
-    if getattr(session, "backdrop", None) is not None:
-        if images is not None and len(images) != len(session.views):
-            raise ValueError(f"got {len(images)} images for {len(session.views)} views")
-        return _keyed_session_silhouettes(session, images, threshold, background, progress)
     model = SilhouetteModel.from_session(session, images=images, mode=mode, background=background)
     return model.silhouettes(threshold=threshold, progress=progress, **clean)
-
-
-def _keyed_session_silhouettes(session, images, threshold, background, progress):
-    """Silhouettes of a session with a ``backdrop``: Lab keying (organlab._keying) of every view without a mask."""
-    from . import _keying
-
-    n = len(session.views)
-    imgs = images
-    if imgs is None:
-        imgs = [session.read(v.image, key=f"views[{i}].image") if v.mask is None else None for i, v in enumerate(session.views)]
-    color = session.backdrop["color"]
-    if color == "frames":
-        frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
-        bg = background_model(frames, method=background)
-    elif color == "border":
-        bg = _keying.estimate_backdrop([im for im, v in zip(imgs, session.views) if v.mask is None])
-    else:
-        bg = np.asarray(color, np.float32)
-    out = []
-    for i, view in enumerate(session.views):
-        if view.mask is not None:
-            m = session.read(view.mask, key=f"views[{i}].mask", grey=True) > 0
-            out.append(Silhouette(m, m.astype(np.float32), None, "given"))
-        else:
-            img = imgs[i]
-            mask, _, info = _keying.key(img, bg, threshold=threshold, shadows=session.backdrop["shadows"])
-            if not mask.any():
-                raise SessionError(
-                    f"{session.json_path}: views[{i}] ({session.relpath(view.image)}): the keyed silhouette is empty; "
-                    "check backdrop.color or lower --threshold"
-                )
-            full = np.broadcast_to(bg, np.shape(img)) if np.ndim(bg) == 1 else bg
-            cov = coverage(img, np.asarray(full, np.float32) * info.gain, mask)
-            out.append(Silhouette(mask, cov, info.threshold, "backdrop", info.to_dict()))
-        if progress is not None:
-            progress(i + 1, n)
-    return out
 
 
 #: The name this function had before organlab 0.2; same function.
