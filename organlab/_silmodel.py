@@ -181,6 +181,14 @@ class SilhouetteModel:
             self._auto[i] = t
         return list(self._auto)
 
+    def auto_threshold(self, i):
+        """View ``i``'s automatic threshold (as :meth:`auto_thresholds`, one view; None for a given mask)."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"view {i} out of range: {len(self)} views")
+        if self.masks[i] is None and self._auto[i] is None:
+            self._auto[i] = self._auto_threshold(i)
+        return self._auto[i]
+
     def _auto_threshold(self, i):
         if self.keyed:
             from ._keying import auto_key_threshold

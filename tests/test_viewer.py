@@ -267,11 +267,22 @@ def test_thesis_hull_and_coloring_reruns(app):
     assert app.wait(g, timeout=300) and not app.errors
     res = app.result
     assert res.colors is not None and res.mesh.vertex_colors is not None
+    # the colour slider shows the automatic threshold colouring measured, without re-running
+    c = app.controls
+    assert res.settings.color_threshold is None and res.color_threshold > 0
+    assert c.color_auto.value is True and abs(c.color_threshold.value - res.color_threshold) <= 0.25
+    assert app.worker.generation == g and f"{res.color_threshold:.1f} (automatic)" in c.measure.content
     assert not (res.occupancy & ~base.occupancy).any()  # colouring only carves the hull
     assert res.occupancy.sum() < base.occupancy.sum()
     # the voxels are shown in their colours
     np.testing.assert_array_equal(app.live._handles["voxels"].colors, res.colors[surface_voxels(res.occupancy)])
     assert type(app.live._handles["mesh"]).__name__ == "GlbHandle"  # mesh sent with vertex colours
+    # moving the slider is a chosen threshold: a re-run at it, the automatic box unticked
+    c.color_threshold.value = 40.0
+    assert app.worker.generation == g + 1 and not c.color_auto.value
+    assert app.wait(g + 1, timeout=300) and not app.errors
+    assert app.result.settings.color_threshold == 40.0 and app.result.color_threshold == 40.0
+    assert app.result.occupancy.sum() >= res.occupancy.sum()  # a higher threshold carves less
     g = app.rerun(method="hull")
     assert app.wait(g, timeout=120)
 
@@ -324,3 +335,49 @@ def test_capture_listener_carves_as_the_table_turns(sample):
         assert len(live._handles["voxels"].points) == surface_voxels(hull).sum() > 0
     finally:
         live.stop()
+
+
+def test_backdrop_session_without_frames(sample, tmp_path):
+    """A session keyed against a declared backdrop colour, with no background frames: the viewer keys
+    its views (Delta E) as organlab reconstruct does, and re-keys at a chosen threshold."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    import cv2
+
+    from organlab.session import load_session
+    from organlab.silhouette import silhouettes
+    from organlab.viewer import SessionViewer
+
+    root = tmp_path / "blue"
+    shutil.copytree(sample, root)
+    s = load_session(root)
+    rng = np.random.default_rng(5)
+    doc = json.loads((root / "session.json").read_text())
+    for v, sil, entry in zip(s.views, silhouettes(s), doc["views"]):  # the specimen pasted on a blue cloth
+        img = s.read(v.image).astype(float)
+        a = sil.coverage[..., None]
+        out = a * img + (1 - a) * (np.array([20.0, 60.0, 200.0]) + rng.normal(0, 2.0, img.shape))
+        # PNG: JPEG's chroma subsampling would bleed the red into the blue by a pixel or two
+        entry["image"] = f"views/{Path(v.image).stem}.png"
+        cv2.imwrite(str(root / entry["image"]), np.clip(np.rint(out), 0, 255).astype(np.uint8)[:, :, ::-1])
+    doc.update(background_images=[], backdrop={"color": [20, 60, 200]})
+    (root / "session.json").write_text(json.dumps(doc))
+    keyed = load_session(root)
+    views = list(range(0, 36, 3))
+    expect = silhouettes(keyed)
+    v = SessionViewer(keyed, voxel_size=2.0, views=views, port=0, stream=False)
+    try:
+        assert v.wait(timeout=180), v.errors
+        assert v.threshold_units == "Delta E" and "Delta E" in v.controls.threshold._impl.props.hint
+        for j, i in enumerate(views):  # the pipeline's silhouettes, view for view
+            np.testing.assert_array_equal(v.result.masks[j], expect[i].mask)
+        ref = keyed.reference["volume_mm3"]
+        # 12 views, 2 mm: measured 100.7 % (the frames session in the same viewer: 101 %)
+        assert abs(v.result.mesh.volume / ref - 1) < 0.03
+        g = v.rerun(threshold=60.0)  # Delta E 60: the specimen's darker parts are lost
+        assert v.wait(g, timeout=120) and not v.errors
+        assert v.result.mesh.volume < 0.97 * ref  # measured 93.8 %
+    finally:
+        v.stop()

@@ -66,6 +66,29 @@ def test_threshold_picker_matches_the_silhouette_stage(session, sils):
         picker.view = len(session.views)
 
 
+def test_threshold_picker_on_a_backdrop_session(tmp_path):
+    """A session keyed against its frames (``"backdrop": {"color": "frames"}``): the picker shows the keyed
+    silhouettes (Delta E), the same as silhouettes()."""
+    import shutil
+
+    root = tmp_path / "keyed"
+    shutil.copytree(SAMPLE, root)
+    doc = json.loads((root / "session.json").read_text())
+    doc["backdrop"] = {"color": "frames"}
+    (root / "session.json").write_text(json.dumps(doc))
+    s = load_session(root)
+    keyed = silhouettes(s)
+    picker = ThresholdPicker(s, view=5)
+    assert picker.units == "Delta E" and picker.background.shape == (480, 640, 3)
+    assert picker.effective_threshold == pytest.approx(keyed[5].threshold)
+    assert np.array_equal(picker.silhouette.mask, keyed[5].mask) and picker.silhouette.source == "backdrop"
+    picker.threshold = 30.0
+    assert np.array_equal(picker.silhouette.mask, silhouettes(s, threshold=30.0)[5].mask)
+    assert picker.area_px < np.count_nonzero(keyed[5].mask)  # Delta E 30 loses the specimen's darker parts
+    fig = picker.figure()
+    assert fig.axes[1].get_xlabel() == "Delta E to the backdrop"
+
+
 def test_threshold_picker_controls(session, sils):
     picker = ThresholdPicker(session, view=0)
     box = picker.widget()
@@ -192,3 +215,41 @@ def test_carving_tuner_on_a_sphere():
     # 8 views leave the hull of a ball a little larger than it (measured +2.2 %, IoU >= 0.971)
     assert 0.0 < r["error_pct"] < 4.0
     assert r["agreement"].min() > 0.95
+
+
+@pytest.mark.slow
+def test_carving_tuner_colours_as_the_pipeline(session, sils, truth):
+    """The tuner's colour test at the automatic threshold and far below it: no cliff (issue 13)."""
+    from organlab.camera import Camera
+    from organlab.coloring import color_voxels
+
+    c = truth["camera"]
+    cameras = [Camera(c["K"], c["dist"], v["R"], v["t"], tuple(c["image_size"])) for v in truth["views"]]
+    views = range(0, 36, 2)
+    tuner = CarvingTuner.from_session(session, cameras, sils, views=views, voxel_size=2.0, color_threshold="auto")
+    hull = CarvingTuner.from_session(session, cameras, sils, views=views, voxel_size=2.0).run()
+    r = tuner.run()
+    auto = r["color_threshold"]
+    assert auto > 0 and f"{auto:.1f} (automatic)" in tuner.summary()
+    assert r["voxel_volume_mm3"] <= hull["voxel_volume_mm3"]  # colouring only removes
+    # 18 views, 2 mm: measured automatic threshold 9.8, +0.09 % (hull +0.19 %), worst IoU 0.972
+    assert abs(r["error_pct"]) < 3.0 and r["agreement"].min() > 0.95
+    # a quarter of the automatic threshold: the guard and the wider support keep the specimen
+    tuner.color_threshold = auto / 4
+    low = tuner.run()
+    assert low["error_pct"] > -3.0  # measured +0.16 %, worst IoU 0.972 and low["agreement"].min() > 0.95
+    # color_voxels' bare defaults at that threshold dig into the specimen: what the tuner no longer shows
+    occ = hull["occupancy"]
+    bare = color_voxels(tuner.images, tuner.cameras, occ, hull["grid"], threshold=auto / 4,
+                        masks=[s.mask for s in tuner.silhouettes])
+    # (measured: 0.05 % of the true volume kept)
+    assert hull["grid"].volume_of(bare.occupancy) < 0.5 * low["voxel_volume_mm3"]
+    # the widget: ticked 'automatic' shows the measured threshold; moving the slider chooses one
+    tuner.color_threshold = "auto"
+    tuner.widget()
+    w = tuner.controls
+    assert w["color"].value and w["color_auto"].value
+    assert w["color_threshold"].value == pytest.approx(auto, abs=0.25)
+    w["color_threshold"].value = 30.0
+    assert not w["color_auto"].value and tuner.color_threshold == 30.0
+    assert tuner.result["color_threshold"] == 30.0 and "30.0:" in w["summary"].value

@@ -23,11 +23,12 @@ from ._worker import LatestWorker
 class Settings:
     """What a re-run depends on (the GUI's controls).
 
-    threshold : float or None -- grey levels for every view; None = automatic per view
+    threshold : float or None -- for every view, grey levels (subtraction) or Delta E (a backdrop session's
+        keying); None = automatic per view
     voxel_size : float, mm
     method : {'hull', 'coloring', 'space_carving'}
     hull : {'subvoxel', 'thesis'}
-    color_threshold : float or None
+    color_threshold : float or None -- None = colouring's automatic threshold
     tolerance : int
     roi : ((3,), (3,)) tuple of float, mm
     """
@@ -60,6 +61,7 @@ class Result:
     raw_mesh: object = None  # the marching-cubes mesh before organlab.surface.finish_surface
     aaa: object = None  # organlab.surface.AAAMeasures (AAA sessions)
     aaa_error: str | None = None  # why an AAA session was not measured
+    color_threshold: float | None = None  # the colour threshold colouring used (its automatic one unless set)
 
 
 def _load_cameras(session):
@@ -135,22 +137,20 @@ class SessionViewer:
 
     # ------------------------------------------------------------ silhouettes
     def _prepare_silhouettes(self):
-        """What does not depend on the threshold, once: organlab.silhouette.SilhouetteModel of the shown views."""
-        from ..errors import SessionError
+        """What does not depend on the threshold, once: organlab.silhouette.SilhouetteModel of the shown views
+        (background subtraction, or keying for a session with a ``backdrop``, as organlab reconstruct)."""
         from ..silhouette import SilhouetteModel
 
         s = self.session
         masks = [s.read(s.views[i].mask, key=f"views[{i}].mask", grey=True) > 0 if s.views[i].mask is not None else None
                  for i in self.view_ids]
         frames = None
-        if any(m is None for m in masks):
-            if not s.background_images:
-                raise SessionError(f"{s.json_path}: background_images: organlab view thresholds views against "
-                                   "background frames; this session has none (a backdrop session): reconstruct it "
-                                   "and show the result with --result DIR")
+        backdrop = s.backdrop
+        if any(m is None for m in masks) and (backdrop is None or backdrop["color"] == "frames"):
             frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
         names = [f"{s.json_path}: views[{i}] ({s.relpath(s.views[i].image)})" for i in self.view_ids]
-        self._model = SilhouetteModel(self.images, frames, masks=masks, names=names)
+        self._model = SilhouetteModel(self.images, frames, masks=masks, names=names, backdrop=backdrop)
+        self.threshold_units = self._model.units
         self.auto_thresholds = self._model.auto_thresholds()
         autos = [t for t in self.auto_thresholds if t is not None]
         self.auto_threshold = float(np.median(autos)) if autos else None
@@ -225,9 +225,9 @@ class SessionViewer:
         t1 = time.perf_counter()
         shown = self.controls.show_voxels or "mesh" not in self.live._handles
         n_surf = self.live.set_voxels(occ, grid, visible=shown)
-        colors = colored = None
+        colors = colored = color_t = None
         if st.method != "hull":
-            occ, colors, colored = self._color(occ, grid, masks, st, check)
+            occ, colors, colored, color_t = self._color(occ, grid, masks, st, check)
             field = None
             n_surf = self.live.set_voxels(occ, grid, colors, visible=shown)
         tm["voxels sent"] = time.perf_counter() - t1
@@ -241,7 +241,7 @@ class SessionViewer:
         mesh, aaa, aaa_error = self._finish_and_measure(raw, occ if (colors is not None or field is None) else field,
                                                         grid, check, tm)
         res = Result(st, grid, occ, mesh, masks, colors, None, n_surf, 0.0, gen, raw_mesh=raw, aaa=aaa,
-                     aaa_error=aaa_error)
+                     aaa_error=aaa_error, color_threshold=color_t)
         t1 = time.perf_counter()
         res.agreement = self._agreement(mesh, masks)
         tm["agreement"] = time.perf_counter() - t1
@@ -279,7 +279,7 @@ class SessionViewer:
         res = coloring.color_voxels(self.images, self.cameras, occ, grid, method=kind, masks=masks,
                                     progress=lambda d, n: check(), **coloring.PIPELINE_OPTIONS,
                                     threshold="auto" if st.color_threshold is None else st.color_threshold)
-        return res.occupancy, res.colors, res.colored
+        return res.occupancy, res.colors, res.colored, float(res.threshold)
 
     @staticmethod
     def _mesh(occ, field, colors, colored, grid):

@@ -16,32 +16,38 @@ class Controls:
     """Build the GUI of a :class:`SessionViewer` and wire its callbacks."""
 
     def __init__(self, app):
-        from ..coloring import DEFAULT_THRESHOLD
-
         self.app = app
         self.live = app.live
         gui = app.live.server.gui
         self.gui = gui
         self._lock = threading.Lock()
+        self._local = threading.local()  # .quiet: this thread is showing a value the user did not set
         st = app.settings
         auto = app.auto_threshold
         n = len(app.cameras)
 
         with gui.add_folder("Reconstruction"):
             self.status = gui.add_markdown("*starting*")
+            keyed = app.threshold_units == "Delta E"
             t0 = round(auto * 2) / 2 if auto is not None else 20.0
             self.threshold = gui.add_slider(
                 "Threshold", min=1.0, max=80.0, step=0.5, initial_value=t0,
                 marks=((t0, "auto"),) if auto is not None else None, disabled=auto is None,
-                hint="silhouette threshold, grey levels (the mark: median of the automatic per-view values)",
+                hint=("silhouette threshold, Delta E (CIE Lab) from the backdrop" if keyed else
+                      "silhouette threshold, grey levels") + " (the mark: median of the automatic per-view values)",
             )
-            self.auto = gui.add_checkbox("Automatic threshold", initial_value=True, disabled=auto is None,
-                                         hint="Li's automatic threshold, per view")
+            self.auto = gui.add_checkbox(
+                "Automatic threshold", initial_value=True, disabled=auto is None,
+                hint="per view: from the border band's noise and clutter, at most Li's" if keyed else
+                "Li's automatic threshold, per view, at least 5 x the background frames' noise")
             self.voxel = gui.add_slider("Voxel size (mm)", min=0.5, max=5.0, step=0.5, initial_value=st.voxel_size)
             self.method = gui.add_dropdown("Method", METHODS, initial_value=st.method)
             self.hull = gui.add_dropdown("Hull", HULLS, initial_value=st.hull)
-            self.color_threshold = gui.add_slider("Colour threshold", min=2.0, max=60.0, step=1.0,
-                                                  initial_value=float(DEFAULT_THRESHOLD), disabled=True)
+            self.color_threshold = gui.add_slider(
+                "Colour threshold", min=1.0, max=60.0, step=0.5, initial_value=1.0, disabled=True,
+                hint="photo-consistency threshold, grey levels; shows the automatic one until moved")
+            self.color_auto = gui.add_checkbox("Automatic colour threshold", initial_value=True, disabled=True,
+                                               hint="from the measured image noise (organlab.coloring)")
             self.tolerance = gui.add_slider("Tolerance (views)", min=0, max=min(5, n - 1), step=1, initial_value=0)
             self.rerun_button = gui.add_button("Re-run")
         with gui.add_folder("Measurements"):
@@ -109,7 +115,7 @@ class Controls:
 
         @self.method.on_update
         def _(_e):
-            self.color_threshold.disabled = self.method.value == "hull"
+            self.color_threshold.disabled = self.color_auto.disabled = self.method.value == "hull"
             self._settings_changed(method=self.method.value)
 
         @self.hull.on_update
@@ -118,7 +124,15 @@ class Controls:
 
         @self.color_threshold.on_update
         def _(_e):
+            if self._quiet:
+                return
+            self._set_quietly(self.color_auto, False)
             self._settings_changed(color_threshold=float(self.color_threshold.value))
+
+        @self.color_auto.on_update
+        def _(_e):
+            if not self._quiet:
+                self._settings_changed(color_threshold=None if self.color_auto.value else float(self.color_threshold.value))
 
         @self.tolerance.on_update
         def _(_e):
@@ -186,6 +200,19 @@ class Controls:
             if res is not None:
                 self.app._show_surface(res.mesh, res.aaa)
 
+    @property
+    def _quiet(self):
+        return getattr(self._local, "quiet", False)
+
+    def _set_quietly(self, handle, value):
+        """Show ``value`` in a control without re-running: viser calls on_update for server-side sets too,
+        synchronously in the setting thread (so the flag is per thread)."""
+        self._local.quiet = True
+        try:
+            handle.value = value
+        finally:
+            self._local.quiet = False
+
     # ------------------------------------------------------------ read-outs
     def show_status(self, text):
         self.status.content = f"*{text}*"
@@ -214,6 +241,11 @@ class Controls:
             worst = int(np.argmin(ag))
             lines.append(f"**Agreement** (IoU) mean {ag.mean():.3f}, worst view {self.app.view_ids[worst]}: {ag[worst]:.3f}")
             lines.append("<br/>" + " ".join(f"`{self.app.view_ids[j]}:{a:.2f}`" for j, a in enumerate(ag)))
+        if res.color_threshold is not None:
+            lines.append(f"**Colour threshold** {res.color_threshold:.1f}"
+                         + (" (automatic)" if res.settings.color_threshold is None else ""))
+            if res.settings.color_threshold is None:  # the slider shows the threshold colouring measured
+                self._set_quietly(self.color_threshold, round(res.color_threshold * 2) / 2)
         self.measure.content = "  \n".join(lines)
         self.show_status(self.app.status)
         self.select(int(self.view.value))

@@ -30,8 +30,13 @@ class CarvingTuner:
     voxel_size : float, mm
     tolerance : int
         Views allowed to disagree before a voxel is carved.
-    color_threshold : float or None
-        Photo-consistency threshold (grey levels); None = no colour test.
+    color_threshold : float, 'auto' or None
+        Photo-consistency threshold (grey levels), ``'auto'`` for the
+        automatic one (measured from the image noise), None = no colour
+        test.  The colour test runs as ``organlab reconstruct`` runs it
+        (:data:`organlab.coloring.PIPELINE_OPTIONS`: exposure, shading
+        measure, automatic support, silhouette guard), so a low threshold
+        widens the support instead of digging through the specimen.
     reference_volume : float, optional
         The specimen's true volume, mm^3, to report the error against.
     angles_deg : sequence of float, optional
@@ -43,7 +48,9 @@ class CarvingTuner:
         After :meth:`run`: ``grid``, ``occupancy``, ``mesh``, ``volume_mm3``
         (the mesh's), ``voxel_volume_mm3``, ``agreement`` ((n_views,) IoU of
         each silhouette with the model's silhouette in that view),
-        ``coloring`` (the colouring's stats or None), ``error_pct`` (or None).
+        ``coloring`` (the colouring's stats or None), ``color_threshold``
+        (the threshold used, the measured one for ``'auto'``; or None),
+        ``error_pct`` (or None).
     """
 
     def __init__(self, images, silhouettes, cameras, roi_min, roi_max, *, voxel_size=2.0, tolerance=0,
@@ -58,6 +65,10 @@ class CarvingTuner:
         self.roi_max = np.asarray(roi_max, np.float64)
         self.voxel_size = float(voxel_size)
         self.tolerance = int(tolerance)
+        if not (color_threshold is None or (isinstance(color_threshold, str) and color_threshold == "auto")
+                or (not isinstance(color_threshold, bool) and isinstance(color_threshold, (int, float))
+                    and color_threshold > 0)):
+            raise OrganlabError(f"color_threshold must be a number > 0, 'auto' or None, got {color_threshold!r}")
         self.color_threshold = color_threshold
         self.reference_volume = reference_volume
         self.angles_deg = None if angles_deg is None else [float(a) for a in angles_deg]
@@ -96,14 +107,15 @@ class CarvingTuner:
         occupancy = field >= 0.5
         if not occupancy.any():
             raise OrganlabError("carving left no voxel: lower the tolerance's strictness or check the silhouettes")
-        coloring = None
+        coloring = used = None
         surface_of = field
         if self.color_threshold is not None:
-            from ..coloring import color_voxels
+            from ..coloring import PIPELINE_OPTIONS, color_voxels
 
-            res = color_voxels(self.images, self.cameras, occupancy, grid, threshold=float(self.color_threshold),
-                               masks=[s.mask for s in self.silhouettes])
-            occupancy, coloring, surface_of = res.occupancy, res.stats(), res.occupancy
+            t = "auto" if self.color_threshold == "auto" else float(self.color_threshold)
+            res = color_voxels(self.images, self.cameras, occupancy, grid, threshold=t,
+                               masks=[s.mask for s in self.silhouettes], **PIPELINE_OPTIONS)
+            occupancy, coloring, surface_of, used = res.occupancy, res.stats(), res.occupancy, float(res.threshold)
         mesh = mesh_from_volume(surface_of, grid, level=0.5)
         agreement = []
         for s, cam in zip(self.silhouettes, self.cameras):
@@ -119,6 +131,7 @@ class CarvingTuner:
             "voxel_volume_mm3": grid.volume_of(occupancy),
             "agreement": np.asarray(agreement),
             "coloring": coloring,
+            "color_threshold": used,
             "error_pct": None if not ref else 100.0 * (float(mesh.volume) - ref) / ref,
         }
         return self.result
@@ -128,7 +141,8 @@ class CarvingTuner:
         r = self.result if self.result is not None else self.run()
         text = (
             f"{self.voxel_size:g} mm voxels, tolerance {self.tolerance}, colour test "
-            + ("off" if self.color_threshold is None else f"{self.color_threshold:g}")
+            + ("off" if r["color_threshold"] is None else
+               f"{r['color_threshold']:.1f}" + (" (automatic)" if self.color_threshold == "auto" else ""))
             + f": mesh volume {r['volume_mm3'] / 1000:.2f} cm3"
         )
         if r["error_pct"] is not None:
@@ -178,37 +192,54 @@ class CarvingTuner:
         """ipywidgets controls (voxel size, tolerance, colour test and threshold) over the figure; a VBox.
 
         The controls are kept in ``self.controls`` (``voxel_size``,
-        ``tolerance``, ``color``, ``color_threshold``, ``summary``,
-        ``output``); setting a ``value`` re-runs the carving.
+        ``tolerance``, ``color``, ``color_auto``, ``color_threshold``,
+        ``summary``, ``output``); setting a ``value`` re-runs the carving.
+        With ``color_auto`` ticked the slider shows the measured threshold;
+        moving it unticks ``color_auto``.
         The figure last drawn into the Output is ``self.last_figure``.
         """
         w = ipywidgets()
+        auto = self.color_threshold == "auto"
         c = self.controls = {
             "voxel_size": w.FloatSlider(value=self.voxel_size, min=1.0, max=6.0, step=0.5, description="voxel (mm)",
                                         continuous_update=False),
             "tolerance": w.IntSlider(value=self.tolerance, min=0, max=max(1, min(4, len(self.cameras) - 1)),
                                      description="tolerance", continuous_update=False),
             "color": w.Checkbox(value=self.color_threshold is not None, description="colour test"),
-            "color_threshold": w.FloatSlider(value=self.color_threshold or 18.0, min=2.0, max=60.0, step=1.0,
-                                             description="colour thr.", continuous_update=False),
+            "color_auto": w.Checkbox(value=self.color_threshold is None or auto, description="automatic"),
+            "color_threshold": w.FloatSlider(value=18.0 if self.color_threshold in (None, "auto") else self.color_threshold,
+                                             min=1.0, max=60.0, step=0.5, description="colour thr.",
+                                             continuous_update=False),
             "summary": w.Label(""),
             "output": w.Output(),
         }
+        syncing = []
 
-        def refresh(_change=None):
+        def refresh(change=None):
+            if syncing:
+                return
+            if change is not None and change["owner"] is c["color_threshold"]:
+                syncing.append(1)
+                c["color_auto"].value = False  # a threshold moved by hand is a chosen one
+                syncing.pop()
             self.voxel_size = c["voxel_size"].value
             self.tolerance = c["tolerance"].value
-            self.color_threshold = c["color_threshold"].value if c["color"].value else None
+            self.color_threshold = (None if not c["color"].value else
+                                    "auto" if c["color_auto"].value else c["color_threshold"].value)
             try:
                 self.run()
                 c["summary"].value = self.summary()
             except OrganlabError as e:
                 c["summary"].value = f"error: {e}"
                 return
+            if self.result["color_threshold"] is not None and self.color_threshold == "auto":
+                syncing.append(1)  # the slider shows the measured threshold
+                c["color_threshold"].value = round(self.result["color_threshold"] * 2) / 2
+                syncing.pop()
             self.last_figure = redraw(c["output"], self.figure)
 
-        for k in ("voxel_size", "tolerance", "color", "color_threshold"):
+        for k in ("voxel_size", "tolerance", "color", "color_auto", "color_threshold"):
             c[k].observe(refresh, names="value")
         refresh()
-        return w.VBox([w.HBox([c["voxel_size"], c["tolerance"]]), w.HBox([c["color"], c["color_threshold"]]),
-                       c["summary"], c["output"]])
+        return w.VBox([w.HBox([c["voxel_size"], c["tolerance"]]),
+                       w.HBox([c["color"], c["color_auto"], c["color_threshold"]]), c["summary"], c["output"]])

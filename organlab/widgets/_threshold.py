@@ -7,27 +7,25 @@ import numpy as np
 from ..errors import SessionError
 from ._common import ipywidgets, new_figure, redraw
 
-#: Factor on the background frames' noise giving the lowest automatic
-#: threshold; the value :func:`organlab.silhouette.silhouettes` uses.
-NOISE_FLOOR_FACTOR = 5.0
-
 
 class ThresholdPicker:
     """Pick the silhouette threshold of a session's views.
 
-    The silhouette is :func:`organlab.silhouette.silhouette` of the view's
-    image against the background model of the session's empty frames, with
-    the picker's ``threshold`` (or, when it is None, the automatic threshold
-    that :func:`organlab.silhouette.silhouettes` would use).
+    The silhouette is what :func:`organlab.silhouette.silhouettes` finds for
+    the view (through the same :class:`organlab.silhouette.SilhouetteModel`):
+    background subtraction against the session's empty frames, or keying
+    against its ``backdrop``, with the picker's ``threshold`` (or, when it is
+    None, the automatic threshold).
 
     Parameters
     ----------
     session : organlab.session.Session
-        Needs ``background_images``.
+        Needs ``background_images`` or a ``backdrop``.
     view : int
         Index of the view shown first.
     threshold : float or None
-        Grey levels; None = automatic (Li's, floored at 5 x the background noise).
+        In ``units``; None = automatic (subtraction: Li's, floored at 5 x
+        the background noise; keying: from the border band's noise).
     mode : {'color', 'grey'}
     background : {'median', 'mean'}
 
@@ -35,24 +33,26 @@ class ThresholdPicker:
     ----------
     view : int
     threshold : float or None
-    background : (H, W, 3) float32
-        The background model.
+    model : organlab.silhouette.SilhouetteModel
+    background : (H, W, 3) float32 or (3,) float32
+        The background model, or the backdrop colour.
     floor : float
-        Lowest automatic threshold, grey levels.
+        Lowest automatic threshold (subtraction), grey levels.
+    units : str
+        ``'grey levels'`` or ``'Delta E'`` (a backdrop session).
     """
 
     def __init__(self, session, *, view=0, threshold=None, mode="color", background="median"):
-        from ..silhouette import background_model, background_noise
+        from ..silhouette import SilhouetteModel
 
-        if not session.background_images:
-            raise SessionError(f"{session.json_path}: background_images: the threshold picker needs background frames")
-        frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
+        if not session.background_images and session.backdrop is None:
+            raise SessionError(f"{session.json_path}: background_images: the threshold picker needs background "
+                               "frames or a 'backdrop'")
         self.session = session
-        self.mode = mode
-        self.background = background_model(frames, method=background)
-        self.floor = NOISE_FLOOR_FACTOR * background_noise(frames)
-        self._images = {}
-        self._diffs = {}
+        self.model = SilhouetteModel.from_session(session, mode=mode, background=background)
+        self.background = self.model.background
+        self.floor = self.model.floor
+        self.units = self.model.units
         self._sil = {}
         self.view = view
         self.threshold = threshold
@@ -80,32 +80,23 @@ class ThresholdPicker:
     @threshold.setter
     def threshold(self, t):
         if t is not None and not float(t) > 0:
-            raise ValueError(f"threshold must be > 0 grey levels or None (automatic), got {t}")
+            raise ValueError(f"threshold must be > 0 {self.units} or None (automatic), got {t}")
         self._threshold = None if t is None else float(t)
 
     @property
     def image(self):
         """(H, W, 3) uint8: the current view's image."""
-        if self._view not in self._images:
-            v = self.session.views[self._view]
-            self._images[self._view] = self.session.read(v.image, key=f"views[{self._view}].image")
-        return self._images[self._view]
+        return self.model.images[self._view]
 
     @property
     def difference(self):
-        """(H, W) float32, grey levels: :func:`organlab.silhouette.difference` of the current view."""
-        from ..silhouette import difference
-
-        if self._view not in self._diffs:
-            self._diffs[self._view] = difference(self.image, self.background, mode=self.mode)
-        return self._diffs[self._view]
+        """(H, W) float32, in ``units``: the current view's difference to the background (or Delta E)."""
+        return self.model.differences[self._view]
 
     @property
     def auto_threshold(self):
-        """The automatic threshold of the current view, grey levels."""
-        from ..silhouette import auto_threshold
-
-        return auto_threshold(self.difference, floor=self.floor)
+        """The automatic threshold of the current view, in ``units``."""
+        return self.model.auto_threshold(self._view)
 
     @property
     def effective_threshold(self):
@@ -115,11 +106,9 @@ class ThresholdPicker:
     @property
     def silhouette(self):
         """organlab.silhouette.Silhouette of the current view at ``effective_threshold``."""
-        from ..silhouette import silhouette
-
         key = (self._view, self.effective_threshold)
         if key not in self._sil:
-            self._sil = {key: silhouette(self.image, self.background, threshold=key[1], mode=self.mode)}
+            self._sil = {key: self.model.silhouette(self._view, threshold=key[1])}
         return self._sil[key]
 
     @property
@@ -167,8 +156,9 @@ class ThresholdPicker:
         ax_hist.axvline(a, color="tab:blue", ls="--", label=f"automatic {a:.1f}")
         if self._threshold is not None:
             ax_hist.axvline(t, color="tab:red", label=f"chosen {t:.1f}")
-        ax_hist.axvline(self.floor, color="0.6", ls=":", label=f"noise floor {self.floor:.1f}")
-        ax_hist.set_xlabel("difference to the background (grey levels)")
+        if not self.model.keyed:
+            ax_hist.axvline(self.floor, color="0.6", ls=":", label=f"noise floor {self.floor:.1f}")
+        ax_hist.set_xlabel("Delta E to the backdrop" if self.model.keyed else "difference to the background (grey levels)")
         ax_hist.set_ylabel("pixels")
         ax_hist.legend(fontsize=8)
         return fig
