@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import SessionError
 from .session import Session, load_session
 
 __all__ = [
