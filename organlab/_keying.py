@@ -12,8 +12,10 @@ in ``session.json``, or estimated from the image border).  Steps:
    carry a chromaticity) are cast shadow, not specimen;
 4. threshold (automatic): from the border band's own Delta E -- its noise
    (median + 6 x 1.4826 MAD) and its clutter (99.5th percentile of the
-   band's background-like pixels) -- capped by Li's threshold of the whole
-   image; the reasons go into ``KeyInfo``;
+   band's background-like pixels) -- and from the background next to the
+   specimen (99th percentile in a ring 3-10 px outside the convex hull of a
+   first, Li, silhouette: JPEG artefacts, flare), each with a margin of 1.5, capped
+   by Li's threshold of the whole image; the reasons go into ``KeyInfo``;
 5. clean-up scaled to the image: opening and closing radii and the largest
    hole filled grow with the square root of the raw silhouette's area (the
    specimen's size in pixels), so dark parts inside the specimen are kept.
@@ -33,8 +35,12 @@ SHADOW_CHROMA = 0.035
 CLOSE_SCALE = 0.012
 #: Largest hole filled, fraction of the silhouette's area.
 HOLE_FRACTION = 0.01
-#: Threshold over the border band's clutter (its 99.5th percentile of Delta E).
+#: Threshold over the border band's clutter (its 99.5th percentile of Delta E)
+#: and over the background next to the specimen (99th percentile in the ring).
 CLUTTER_MARGIN = 1.5
+#: Inner and outer radius (px) of the ring outside a first silhouette whose
+#: background sets a floor under the threshold (JPEG blocks are 8-16 px).
+RING_PX = (3, 10)
 
 
 @dataclass(frozen=True)
@@ -49,6 +55,7 @@ class KeyInfo:
     gain: float
     shadow_fraction: float
     close_radius: int
+    ring: float | None = None
 
     def to_dict(self):
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -132,7 +139,13 @@ def key_distance(image, background, *, shadows=True):
 
 
 def auto_key_threshold(dist):
-    """The keying threshold of a Delta E image and its reasons: (threshold, reason, noise, clutter, li)."""
+    """The keying threshold of a Delta E image and its reasons.
+
+    Returns
+    -------
+    threshold, reason, noise, clutter, li, ring : float, str, float, float, float, float or None
+        ``ring`` is the near-specimen rule's value (None when it had no ring).
+    """
     from skimage import filters
 
     band = border_band(dist.shape)
@@ -140,15 +153,44 @@ def auto_key_threshold(dist):
     b = dist[band]
     bgl = b[b < li]
     if bgl.size < 50:
-        return li, "li (no background in the border band)", 0.0, 0.0, li
+        return li, "li (no background in the border band)", 0.0, 0.0, li, None
     med = float(np.median(bgl))
     noise = med + 6.0 * 1.4826 * float(np.median(np.abs(bgl - med)))
     clutter = float(np.percentile(bgl, 99.5))
+    ring = _ring_level(dist, li)
     t = max(noise, CLUTTER_MARGIN * clutter, 1.0)
-    if t >= li:
-        return li, "li (below the border band's noise and clutter)", noise, clutter, li
     reason = "border noise" if noise >= clutter else "border clutter"
-    return t, reason, noise, clutter, li
+    if ring is not None and CLUTTER_MARGIN * ring > t:
+        t, reason = CLUTTER_MARGIN * ring, "background next to the specimen"
+    if t >= li:
+        return li, "li (below the background's noise and clutter)", noise, clutter, li, ring
+    return t, reason, noise, clutter, li, ring
+
+
+def _ring_level(dist, li):
+    """99th percentile of Delta E in a ring RING_PX outside a first (Li) silhouette's convex hull, or None.
+
+    The border band can be far cleaner than the background next to the
+    specimen: JPEG ringing and blocking (8 x 8 px blocks, 16 x 16 px of
+    chroma at 4:2:0), lens flare and soft shadows all gather at the
+    specimen's edge, where a threshold from the border's noise takes them
+    for specimen.
+    """
+    import cv2
+
+    first, _ = clean_scaled(dist > li)
+    if not first.any():
+        return None
+    # its convex hull: dark parts of the specimen that Li's threshold misses (a dark band across it)
+    # lie inside, not in the ring
+    pts = cv2.findNonZero(first.astype(np.uint8))
+    f8 = cv2.fillConvexPoly(np.zeros(first.shape, np.uint8), cv2.convexHull(pts), 1)
+
+    def grown(r):
+        return cv2.dilate(f8, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+
+    ring = grown(RING_PX[1]) & ~grown(RING_PX[0]) & (dist < li)
+    return float(np.percentile(dist[ring], 99.0)) if np.count_nonzero(ring) >= 50 else None
 
 
 def clean_scaled(raw):
@@ -189,9 +231,9 @@ def key(image, background, *, threshold=None, shadows=True):
     """Keyed silhouette of one view: ``(mask (H, W) bool, dist (H, W) float32, KeyInfo)``."""
     d, g, sh = key_distance(image, background, shadows=shadows)
     if threshold is None:
-        t, reason, noise, clutter, li = auto_key_threshold(d)
+        t, reason, noise, clutter, li, ring = auto_key_threshold(d)
     else:
-        t, reason, noise, clutter, li = float(threshold), "given", None, None, None
+        t, reason, noise, clutter, li, ring = float(threshold), "given", None, None, None, None
     mask, r = clean_scaled(d > t)
-    info = KeyInfo(float(t), reason, noise, clutter, li, g, float(sh.mean()), r)
+    info = KeyInfo(float(t), reason, noise, clutter, li, g, float(sh.mean()), r, ring)
     return mask, d, info

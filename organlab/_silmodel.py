@@ -280,10 +280,10 @@ class SilhouetteModel:
             raise SessionError(f"{self.names[i]}: the keyed silhouette is empty; check backdrop.color or lower --threshold")
         auto = self._auto_info[i]
         if auto is not None and auto[0] == t:
-            reason, noise, clutter, li = auto[1:]
+            reason, noise, clutter, li, ring = auto[1:]
         else:
-            reason, noise, clutter, li = "given", None, None, None
-        info = KeyInfo(float(t), reason, noise, clutter, li, self.gains[i], self._shadow[i], r)
+            reason, noise, clutter, li, ring = "given", None, None, None, None
+        info = KeyInfo(float(t), reason, noise, clutter, li, self.gains[i], self._shadow[i], r, ring)
         bg = self.background
         full = np.broadcast_to(bg, np.shape(self.images[i])) if np.ndim(bg) == 1 else bg
         cov = coverage(self.images[i], np.asarray(full, np.float32) * self.gains[i], mask)
