@@ -73,7 +73,8 @@ def load_voxels(result_dir):
         raise OrganlabError(f"{path}: not found; run 'organlab reconstruct SESSION --out {result_dir}' first")
     fix = "rewrite it with 'organlab reconstruct'"
     try:
-        with np.load(path, allow_pickle=False) as z:
+        # our own handle: np.load leaves its own open when the zip is damaged
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:
             try:
                 occ = z["occupancy"]
                 grid = VoxelGrid(z["origin_mm"], float(z["voxel_size_mm"]), occ.shape)
