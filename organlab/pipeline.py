@@ -412,6 +412,7 @@ def write_outputs(rec, out_dir, *, atomic=True):
         with atomic_output_dir(out_dir) as tmp:
             paths = write_outputs(rec, tmp, atomic=False)
         return {k: Path(out_dir) / p.name for k, p in paths.items()}
+    from .carving import BandField
     from .surface import write_ply, write_stl
 
     out = Path(out_dir)
@@ -424,8 +425,10 @@ def write_outputs(rec, out_dir, *, atomic=True):
     }
     if rec.colors is not None:
         arrays["colors"] = rec.colors
-    if rec.field is not None:
-        arrays["field"] = rec.field
+    if isinstance(rec.field, BandField):  # the band only: the file grows with the surface, not the volume
+        arrays.update(rec.field.to_arrays(prefix="field_"))
+    elif rec.field is not None:  # a dense field (hull_field(sparse=False)) as earlier versions stored it
+        arrays["field"] = np.asarray(rec.field, dtype=np.float32)
     np.savez_compressed(paths["voxels"], **arrays)
     write_ply(paths["ply"], rec.mesh)
     write_stl(paths["stl"], rec.mesh)

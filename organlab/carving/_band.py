@@ -141,6 +141,98 @@ class BandField:
 
         return band_mesh(self, chunk=chunk)
 
+    # ----------------------------------------------------------- storage
+    def to_arrays(self, *, prefix="field_"):
+        """The field as plain arrays, for ``np.savez_compressed`` (``voxels.npz``).
+
+        Only the band blocks' values are stored, so the size grows with the
+        surface, not the volume.  The band blocks' rows are put in C order of
+        their block (the order of ``states == 2``), so the index is implied.
+
+        Parameters
+        ----------
+        prefix : str
+            Prepended to the array names.
+
+        Returns
+        -------
+        dict of str -> ndarray
+            ``{prefix}block`` : () int64, block edge, voxels;
+            ``{prefix}states`` : (bx, by, bz) int8, 0 outside (every voxel
+            -0.5), 1 inside (every voxel 1.5), 2 band, with
+            ``bx = ceil(nx / block)``...;
+            ``{prefix}values`` : (n_band, block, block, block) float32, the
+            band blocks' values in C order of their block (axes x, y, z;
+            voxels beyond the grid hold -0.5).
+        """
+        band = self.states == BAND
+        rows = self.index[band]
+        values = self.values
+        if not np.array_equal(rows, np.arange(len(rows))):
+            values = values[rows]
+        return {
+            f"{prefix}block": np.int64(self.block),
+            f"{prefix}states": np.ascontiguousarray(self.states, dtype=np.int8),
+            f"{prefix}values": np.ascontiguousarray(values, dtype=np.float32),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays, grid, *, prefix="field_", source="voxels.npz"):
+        """The field back from :meth:`to_arrays`' arrays, checked.
+
+        Parameters
+        ----------
+        arrays : mapping of str -> ndarray
+            Holds ``{prefix}block``, ``{prefix}states``, ``{prefix}values``
+            (an ``np.load`` result works).
+        grid : VoxelGrid
+            The grid the field samples (its shape fixes the states' shape).
+        prefix : str
+        source : str or Path
+            Named in the errors (the file read).
+
+        Returns
+        -------
+        BandField
+
+        Raises
+        ------
+        OrganlabError
+            One line naming ``source`` and the array, when an array is
+            missing, or its shape, dtype or content does not fit the others.
+        """
+        from ..errors import OrganlabError
+
+        def bad(name, why):
+            return OrganlabError(f"{source}: {prefix}{name}: {why}; rewrite it with 'organlab reconstruct'")
+
+        got = {}
+        for name in ("block", "states", "values"):
+            try:
+                got[name] = np.asarray(arrays[prefix + name])
+            except KeyError:
+                raise bad(name, "missing") from None
+        block, states, values = got["block"], got["states"], got["values"]
+        if block.shape != () or block.dtype.kind not in "iu" or not 1 <= int(block) <= 1024:
+            raise bad("block", f"{block.dtype} {block.shape}, expected one integer from 1 to 1024")
+        B = int(block)
+        nb = tuple(-(-int(n) // B) for n in grid.shape)
+        if states.dtype != np.int8 or states.shape != nb:
+            raise bad("states", f"{states.dtype} {states.shape}, expected int8 {nb} (grid {tuple(grid.shape)} "
+                                f"in blocks of {B})")
+        if states.size and (states.min() < OUTSIDE or states.max() > BAND):
+            raise bad("states", "values other than 0 (outside), 1 (inside), 2 (band)")
+        band = states == BAND
+        n = int(band.sum())
+        if values.dtype != np.float32 or values.shape != (n, B, B, B):
+            raise bad("values", f"{values.dtype} {values.shape}, expected float32 {(n, B, B, B)} "
+                                f"(one block per band block of {prefix}states)")
+        if n and not (values.min() >= -0.5 and values.max() <= 1.5):  # NaN fails too
+            raise bad("values", "outside the field's range [-0.5, 1.5]")
+        index = np.full(nb, -1, dtype=np.int32)
+        index[band] = np.arange(n, dtype=np.int32)
+        return cls(grid, B, np.ascontiguousarray(states), index, np.ascontiguousarray(values))
+
     def __repr__(self):
         return (
             f"BandField(shape={self.shape}, block={self.block}, band_blocks={len(self.values)}, "

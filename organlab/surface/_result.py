@@ -38,25 +38,64 @@ def is_aaa_session(session):
 def load_voxels(result_dir):
     """The surface volume and grid of a result folder's ``voxels.npz``.
 
+    Reads the field as stored now (the band: ``field_block``,
+    ``field_states``, ``field_values``, see
+    :meth:`organlab.carving.BandField.from_arrays`) and as earlier versions
+    stored it (a dense ``field``).
+
+    Parameters
+    ----------
+    result_dir : str or Path
+        Output folder of ``organlab reconstruct``.
+
     Returns
     -------
     volume : (nx, ny, nz) float32
-        The sub-voxel field when saved, else the occupancy as 0/1.
+        The sub-voxel field when saved (and no colouring carved the
+        occupancy), else the occupancy as 0/1; level 0.5 is the surface.
     grid : VoxelGrid
+
+    Raises
+    ------
+    OrganlabError
+        One line naming the file: missing, unreadable, or an array missing
+        or not fitting the others.
     """
+    import zipfile
+    import zlib
+
+    from ..carving import BandField
     from ..errors import OrganlabError
     from ..grid import VoxelGrid
 
     path = Path(result_dir) / "voxels.npz"
     if not path.is_file():
         raise OrganlabError(f"{path}: not found; run 'organlab reconstruct SESSION --out {result_dir}' first")
-    with np.load(path, allow_pickle=False) as z:
-        try:
-            occ = z["occupancy"]
-            vol = z["field"] if "field" in z.files and "colors" not in z.files else occ
-            grid = VoxelGrid(z["origin_mm"], float(z["voxel_size_mm"]), occ.shape)
-        except KeyError as e:
-            raise OrganlabError(f"{path}: missing array {e}; rewrite it with 'organlab reconstruct'") from None
+    fix = "rewrite it with 'organlab reconstruct'"
+    try:
+        # our own handle: np.load leaves its own open when the zip is damaged
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:
+            try:
+                occ = z["occupancy"]
+                grid = VoxelGrid(z["origin_mm"], float(z["voxel_size_mm"]), occ.shape)
+            except KeyError as e:
+                raise OrganlabError(f"{path}: missing array {e}; {fix}") from None
+            if occ.ndim != 3:
+                raise OrganlabError(f"{path}: occupancy: shape {occ.shape}, expected (nx, ny, nz); {fix}")
+            if "colors" in z.files:  # colouring carved voxels the field knows nothing of
+                vol = occ
+            elif "field_states" in z.files:
+                vol = BandField.from_arrays(z, grid, prefix="field_", source=path).dense()
+            elif "field" in z.files:  # written by organlab before the band storage
+                vol = z["field"]
+                if vol.shape != occ.shape:
+                    raise OrganlabError(f"{path}: field: shape {vol.shape}, expected the occupancy's {occ.shape}; {fix}")
+            else:
+                vol = occ
+    except OrganlabError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise OrganlabError(f"{path}: unreadable ({type(e).__name__}: {e}); {fix}") from None
     return np.asarray(vol, dtype=np.float32), grid
 
 
