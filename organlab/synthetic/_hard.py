@@ -5,9 +5,9 @@ the camera rig (upper left, in front of the specimen) lights the scene
 directionally: Lambertian shading with little ambient light, cast shadows
 (of the specimen on the plate and on itself), and Blinn-Phong specular
 highlights on the specimen.  Each view's exposure differs (a gain drawn
-within about +-10 %), and the images are noisy and JPEG-compressed by the
-session writer.  Background frames are the same scene without the specimen
-(no shadow), at gain 1.
+within about +-10 %), and the images are noisy and JPEG-compressed (4:2:0
+chroma, as most cameras write) by the session writer.  Background frames
+are the same scene without the specimen (no shadow), at gain 1.
 """
 
 from __future__ import annotations

@@ -15,7 +15,8 @@ from ._specimens import make_specimen
 DEFAULT_ROI = {"min": [-70.0, -70.0, 0.0], "max": [70.0, 70.0, 200.0]}
 
 
-def _write_image(path, image, *, fmt="png", quality=95):
+def _write_image(path, image, *, fmt="png", quality=95, chroma="444"):
+    """Write a PNG, or a JPEG with full (``'444'``) or 2 x 2 subsampled (``'420'``, most cameras) chroma."""
     import cv2
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -28,7 +29,8 @@ def _write_image(path, image, *, fmt="png", quality=95):
         ]
         buf = min(bufs, key=len)
     else:
-        params = [cv2.IMWRITE_JPEG_QUALITY, int(quality), cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
+        factor = {"444": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444, "420": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420}[chroma]
+        params = [cv2.IMWRITE_JPEG_QUALITY, int(quality), cv2.IMWRITE_JPEG_SAMPLING_FACTOR, factor]
         buf = cv2.imencode(".jpg", img, params)[1]
     path.write_bytes(buf.tobytes())
 
@@ -116,7 +118,8 @@ def make_session(
         Hard lighting for the views and background frames (:mod:`organlab.synthetic._hard`):
         a directional lamp with cast shadows on the plate, specular highlights,
         a per-view exposure gain within +-10 %; views and frames are written as
-        JPEG (quality at most 90) over the pixel noise.
+        JPEG (quality at most 90, chroma subsampled 4:2:0 as most cameras
+        write it) over the pixel noise.
 
     Returns
     -------
@@ -143,7 +146,7 @@ def make_session(
     if hard:
         view_format = background_format = "jpg"
         jpeg_quality = min(int(jpeg_quality), 90)
-    image_kw = dict(supersample=int(supersample), quality=jpeg_quality, hard=hard)
+    image_kw = dict(supersample=int(supersample), quality=jpeg_quality, hard=hard, chroma="420" if hard else "444")
     background = _write_background_frames(out, cam, n_background, noise, fmt=background_format, **image_kw)
     views, views_truth = _write_views(out, cam, spec, n_views, noise, include_poses, fmt=view_format, **image_kw)
     roi = DEFAULT_ROI if roi is None else roi
@@ -167,7 +170,7 @@ def make_session(
     truth = _truth(cam, spec, views_truth, pattern, poses_in, seed=seed, noise_sigma=noise_sigma, supersample=supersample,
                    board_supersample=board_supersample, formats=(view_format, background_format, jpeg_quality))
     if hard:
-        truth["hard"] = {"exposure_gains": [v["exposure_gain"] for v in views_truth]}
+        truth["hard"] = {"exposure_gains": [v["exposure_gain"] for v in views_truth], "jpeg_chroma": "4:2:0"}
     write_json(out / "session.json", session)
     write_json(out / "truth.json", truth)
     truth["session_json"] = session
@@ -230,19 +233,19 @@ def _write_turntable_images(out, cam, pattern, n, step_deg, board_supersample, n
     return entries
 
 
-def _write_background_frames(out, cam, n, noise, *, supersample, fmt, quality, hard=False):
+def _write_background_frames(out, cam, n, noise, *, supersample, fmt, quality, hard=False, chroma="444"):
     """Background frames: the empty scene."""
     names = []
     if n:
         empty = _hard.render_hard(cam, supersample=supersample) if hard else _render.render(cam, supersample=supersample)
         for i in range(int(n)):
             rel = f"background/{i:02d}.{fmt}"
-            _write_image(out / rel, noise(empty, 3, i), fmt=fmt, quality=quality)
+            _write_image(out / rel, noise(empty, 3, i), fmt=fmt, quality=quality, chroma=chroma)
             names.append(rel)
     return names
 
 
-def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, fmt, quality, hard=False):
+def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, fmt, quality, hard=False, chroma="444"):
     """Views of the specimen every ``360 / n_views`` degrees; returns the session's and the truth's view entries."""
     views, views_truth = [], []
     for i in range(int(n_views)):
@@ -254,7 +257,7 @@ def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, 
         else:
             img = _render.render(cam_a, supersample=supersample, specimen=spec)
         rel = f"views/{int(round(a * 10)):04d}.{fmt}" if a != int(a) else f"views/{int(a):03d}.{fmt}"
-        _write_image(out / rel, noise(img, 4, i), fmt=fmt, quality=quality)
+        _write_image(out / rel, noise(img, 4, i), fmt=fmt, quality=quality, chroma=chroma)
         entry = {"image": rel, "angle_deg": a}
         if include_poses:
             entry["pose"] = {"R": cam_a.R.tolist(), "t": cam_a.t.tolist()}
