@@ -4,7 +4,7 @@
                          [--method hull|coloring|space_carving] [--color-threshold X]
                          [--calibration PATH] [--recalibrate] [--measure] [--raw-surface]
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
-    organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--force]
+    organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--backdrop ...] [--force]
     organlab mesh RESULT_DIR [--repair] [--smooth] [--remesh MM] [--tetra] [--measure] [--picture]
     organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [--view [--port P]] [...]
@@ -101,6 +101,9 @@ def _init_parser(sub):
     i.add_argument("--board", default="9x6", metavar="CxR", help="board's inner corners, columns x rows (default 9x6)")
     i.add_argument("--square", type=_positive_float, default=20.0, metavar="MM", help="board's square size (default 20)")
     i.add_argument("--roi", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1", help="voxel space, mm (default a 200 mm box)")
+    i.add_argument("--backdrop", default=None, metavar="border|frames|R,G,B",
+                   help="key the views against a uniform backdrop: the image border's colour, the background frames, "
+                        "or an RGB colour (default: background subtraction with frames; 'border' without)")
     i.add_argument("--force", action="store_true", help="overwrite an existing session.json")
 
 
@@ -112,10 +115,18 @@ def _init(a):
         roi = None if a.roi is None else [float(v) for v in a.roi.split(",")]
     except ValueError:
         raise OrganlabError(f"--board must be like 9x6 and --roi 6 numbers separated by commas, got {a.board!r}, {a.roi!r}") from None
+    backdrop = a.backdrop
+    if backdrop is not None and backdrop not in ("border", "frames"):
+        try:
+            backdrop = [int(v) for v in backdrop.split(",")]
+        except ValueError:
+            backdrop = None
+        if backdrop is None or len(backdrop) != 3 or not all(0 <= v <= 255 for v in backdrop):
+            raise OrganlabError(f"--backdrop must be 'border', 'frames' or R,G,B in 0-255, got {a.backdrop!r}")
     if len(corners) != 2 or min(corners) < 2:
         raise OrganlabError(f"--board must be COLUMNSxROWS of inner corners (each >= 2), got {a.board!r}")
     path, notes = init_session(a.folder, step_deg=a.step, start_deg=a.start, inner_corners=corners,
-                               square_size=a.square, roi=roi, force=a.force)
+                               square_size=a.square, roi=roi, backdrop=backdrop, force=a.force)
     doc = json.loads(path.read_text())
     print(f"organlab init: wrote {path} ({len(doc['views'])} views, "
           f"{len(doc.get('background_images', []))} background frames, "

@@ -68,7 +68,7 @@ def _image_size(path):
 
 
 def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), square_size=20.0, roi=None, name=None,
-                 force=False):
+                 backdrop=None, force=False):
     """Write ``folder/session.json`` for the images in ``folder``.
 
     Parameters
@@ -89,6 +89,12 @@ def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), squar
         200 x 200 x 200 mm box standing on the table: check it).
     name : str, optional
         Session name (default: the folder's name).
+    backdrop : {'border', 'frames'} or (3,) int, optional
+        The session's ``backdrop`` (keying in CIE Lab, see
+        ``docs/session-format.md``): the image border's colour, the
+        background frames, or a declared RGB colour.  Default: none when
+        there are background frames (background subtraction), ``'border'``
+        when there are none.
     force : bool
         Overwrite an existing ``session.json``.
 
@@ -137,8 +143,12 @@ def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), squar
     background = _find(root, "background")
     if background:
         doc["background_images"] = [rel(p) for p in background]
-    else:
-        notes.append("no background frames (background/): give each view a 'mask' or add frames of the empty scene")
+    if backdrop is None and not background:
+        backdrop = "border"
+        notes.append("no background frames (background/): views keyed against the colour of the image border "
+                     "(backdrop 'border'); give --backdrop R,G,B for a known backdrop colour, or add frames of the empty scene")
+    if backdrop is not None:
+        doc["backdrop"] = {"color": backdrop if isinstance(backdrop, str) else [int(v) for v in backdrop]}
     intrinsics, turntable = _find(root, "intrinsics"), _find(root, "turntable")
     if intrinsics or turntable:
         doc["pattern"] = {"type": "checkerboard", "inner_corners": [int(v) for v in inner_corners], "square_size": float(square_size)}

@@ -233,6 +233,28 @@ def test_init_writes_the_samples_session(tmp_path, capsys):
     assert not (flat / "session.json").exists()
 
 
+def test_init_without_background_frames_keys_a_backdrop(tmp_path, capsys):
+    """A rig with no frames of the empty scene: init declares a backdrop (the border's colour by default,
+    or the one given) so the session loads and its views are keyed; a bad --backdrop is one line."""
+    root = tmp_path / "cloth"
+    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("session.json", "truth.json", "calibration.json",
+                                                                "calibration_check", "background"))
+    assert main(["init", str(root), "--step", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "0 background frames" in out and "keyed against the colour of the image border" in out
+    s = load_session(root)
+    assert s.backdrop == {"color": "border", "shadows": True} and s.background_images == ()
+    assert main(["init", str(root), "--step", "10", "--backdrop", "20,60,200", "--force"]) == 0
+    assert load_session(root).backdrop["color"] == (20.0, 60.0, 200.0)
+    assert main(["init", str(root), "--step", "10", "--backdrop", "blue", "--force"]) == 2
+    _one_line_error(capsys, "--backdrop", "R,G,B")
+    # 'frames' without frames: refused by the session check, nothing left written
+    (root / "session.json").unlink()
+    assert main(["init", str(root), "--step", "10", "--backdrop", "frames"]) == 2
+    _one_line_error(capsys, "backdrop")
+    assert not (root / "session.json").exists()
+
+
 # ------------------------------------------------------------------ moved board, dropped images
 MOVED = ["140.png", "160.png", "180.png"]
 
