@@ -136,9 +136,8 @@ def _centreline(inside, vs, smooth_mm, step_mm):
     return c, u, t, r, dist.max()
 
 
-def _section(vol, origin, vs, level, c, t, half, px):
-    """Contour (M, 2) in plane coordinates, the plane's basis, Feret and equivalent diameters."""
-    from scipy import ndimage
+def _section(sample, level, c, t, half, px):
+    """Contour (M, 3) of the section, world frame, its Feret and equivalent diameters; ``sample``: a FieldSampler."""
     from scipy.spatial import ConvexHull
     from scipy.spatial.distance import pdist
     from skimage.measure import find_contours, points_in_poly
@@ -149,9 +148,7 @@ def _section(vol, origin, vs, level, c, t, half, px):
     e2 = np.cross(t, e1)
     g = np.arange(-half, half + px / 2, px)
     U, V = np.meshgrid(g, g, indexing="ij")
-    pts = c + U[..., None] * e1 + V[..., None] * e2
-    ijk = (pts - origin) / vs
-    img = ndimage.map_coordinates(vol, np.moveaxis(ijk, -1, 0), order=1, mode="constant", cval=min(0.0, level - 1))
+    img = sample(c + U[..., None] * e1 + V[..., None] * e2)
     centre = np.array([[(len(g) - 1) / 2, (len(g) - 1) / 2]])
     best = None
     for ct in find_contours(img, level):
@@ -170,14 +167,17 @@ def _section(vol, origin, vs, level, c, t, half, px):
     return world, feret, 2.0 * np.sqrt(area * px * px / np.pi)
 
 
-def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm=None, sac_factor=1.2):
+def measure_aaa(
+    volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm=None, sac_factor=1.2, centreline_voxel_mm=0.5
+):
     """Centreline, maximum diameter, its location, sac length and volume of a vessel.
 
     Parameters
     ----------
-    volume : (nx, ny, nz) bool or float
+    volume : (nx, ny, nz) bool or float, or BandField
         Occupancy or field (larger inside) on ``grid``; the lumen is its
-        largest connected part above ``level``.
+        largest connected part above ``level``.  A ``BandField``
+        (``hull_field(..., sparse=True)``) is read in its band, never densified.
     grid : VoxelGrid
     level : float
     step_mm : float, mm
@@ -185,42 +185,89 @@ def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm
     smooth_mm : float, mm
         Gaussian smoothing of the voxel path (sigma, along its length).
     pixel_mm : float, mm, optional
-        Sampling of the section planes (default: half a voxel).
+        Sampling of the section planes (default: half a voxel, but at least
+        the smaller of a voxel and 0.25 mm: the field is linear within a
+        voxel of its level, so a voxel-sized pixel still traces it).
     sac_factor : float
         The sac: sections whose equivalent diameter exceeds this times the neck's.
+    centreline_voxel_mm : float, mm
+        The centreline path, the lumen's largest part and the sac volume are
+        computed on voxels of about this size (an integer number of the grid's,
+        the field sampled at their centres) when the grid's are finer; the
+        sections always sample the grid's own field.
 
     Returns
     -------
     AAAMeasures
     """
+    from ..carving import BandField
     from ..errors import OrganlabError
+    from ._sampling import FieldSampler
 
-    vol = np.asarray(volume)
-    if vol.shape != tuple(grid.shape):
-        raise ValueError(f"volume shape {vol.shape} does not match the grid {grid.shape}")
-    vol = vol.astype(np.float32)
-    above = vol > level
-    if not above.any():
+    vs = float(grid.voxel_size)
+    cval = min(0.0, level - 1)
+    if isinstance(volume, BandField):
+        if volume.shape != tuple(grid.shape):
+            raise ValueError(f"field shape {volume.shape} does not match the grid {grid.shape}")
+        lo, hi = _band_box(volume, level)
+        sample = FieldSampler(volume, grid.origin, vs, cval)
+        vol = None
+    else:
+        vol = np.asarray(volume)
+        if vol.shape != tuple(grid.shape):
+            raise ValueError(f"volume shape {vol.shape} does not match the grid {grid.shape}")
+        above = vol > level
+        lo, hi = (np.argwhere(above).min(axis=0), np.argwhere(above).max(axis=0) + 1) if above.any() else (None, None)
+    if lo is None:
         raise OrganlabError("the model is empty: no vessel to measure")
     # work on the bounding box of the model (plus a margin), not the whole roi
-    lo = np.maximum(np.argwhere(above).min(axis=0) - 2, 0)
-    hi = np.argwhere(above).max(axis=0) + 3
-    vol = vol[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
-    inside = _largest_component(vol > level)
-    if inside.sum() < 27:
-        raise OrganlabError("the model has fewer than 27 voxels inside: no vessel to measure")
-    vs = float(grid.voxel_size)
+    lo = np.maximum(lo - 2, 0)
+    hi = np.minimum(hi + 2, grid.shape)
     origin = np.asarray(grid.origin, dtype=np.float64) + lo * vs
-    px = 0.5 * vs if pixel_mm is None else float(pixel_mm)
-    c, arc, t, r, dmax = _centreline(inside, vs, smooth_mm, step_mm)
-    c = c + origin
+    f = max(1, int(np.floor(float(centreline_voxel_mm) / vs + 1e-9)))
+    if vol is not None:
+        vol = vol[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
+        sample = FieldSampler(vol, origin, vs, cval)
+        inside = vol > level if f == 1 else sample.above((0, 0, 0), -(-(hi - lo) // f), f, level)
+    else:
+        inside = sample.above(lo, -(-(hi - lo) // f), f, level)
+    inside = _largest_component(inside)
+    if inside.sum() * f**3 < 27:
+        raise OrganlabError("the model has fewer than 27 voxels inside: no vessel to measure")
+    cvs, corigin = f * vs, origin + 0.5 * (f - 1) * vs  # the centreline's voxels
+    px = max(0.5 * vs, min(vs, 0.25)) if pixel_mm is None else float(pixel_mm)
+    c, arc, t, r, dmax = _centreline(inside, cvs, smooth_mm, step_mm)
+    c = c + corigin
     sections = []
     for k in range(len(c)):
         # a window of 3 wall distances; the largest one when the section leaves it (oblique cuts)
-        sec = _section(vol, origin, vs, level, c[k], t[k], 3.0 * r[k] + 4 * vs, px)
+        sec = _section(sample, level, c[k], t[k], 3.0 * r[k] + 4 * vs, px)
         if sec[0] is None:
-            sec = _section(vol, origin, vs, level, c[k], t[k], 3.0 * dmax + 4 * vs, px)
+            sec = _section(sample, level, c[k], t[k], 3.0 * dmax + 4 * vs, px)
         sections.append(sec)
+    params = {"level": level, "step_mm": step_mm, "smooth_mm": smooth_mm, "pixel_mm": px, "sac_factor": sac_factor,
+              "centreline_voxel_mm": cvs}
+    return _measures(c, arc, sections, inside, corigin, cvs, sac_factor, params)
+
+
+def _band_box(field, level):
+    """Voxel bounds ``lo`` (inclusive), ``hi`` (exclusive) of the blocks holding values above ``level``; None if none."""
+    B = field.block
+    hot = field.states == 1
+    band = np.argwhere(field.states == 2)
+    if len(band):
+        rows = field.index[tuple(band.T)]
+        hot[tuple(band[(field.values[rows] > level).any(axis=(1, 2, 3))].T)] = True
+    if not hot.any():
+        return None, None
+    idx = np.argwhere(hot)
+    return idx.min(axis=0) * B, np.minimum((idx.max(axis=0) + 1) * B, field.shape)
+
+
+def _measures(c, arc, sections, inside, origin, vs, sac_factor, params):
+    """The diameters, neck and sac from the sections (see :func:`measure_aaa`)."""
+    from ..errors import OrganlabError
+
     feret = np.array([s[1] for s in sections])
     eq = np.array([s[2] for s in sections])
     if np.all(np.isnan(feret)):
@@ -246,8 +293,7 @@ def measure_aaa(volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm
     sac_vol = _sac_volume(inside, origin, vs, c, arc, s0, s1)
     return AAAMeasures(
         c, arc, feret, eq, k, float(feret[k]), float(eq[k]), c[k].copy(), sections[k][0],
-        neck, s0, s1, s1 - s0, sac_vol,
-        {"level": level, "step_mm": step_mm, "smooth_mm": smooth_mm, "pixel_mm": px, "sac_factor": sac_factor},
+        neck, s0, s1, s1 - s0, sac_vol, params,
     )
 
 
