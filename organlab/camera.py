@@ -251,6 +251,20 @@ class Camera:
 
         return cv2.Rodrigues(self.R)[0].ravel()
 
+    def pixel_footprint(self, point):
+        """Size of one pixel at a world point, mm: its depth over the mean focal length.
+
+        Parameters
+        ----------
+        point : (3,) float64, mm, world frame
+
+        Returns
+        -------
+        float, mm (inf for a point on or behind the camera plane)
+        """
+        z = float(self.world_to_camera(np.asarray(point, np.float64).reshape(1, 3))[0, 2])
+        return z / (0.5 * (self.K[0, 0] + self.K[1, 1])) if z > 0 else float("inf")
+
     # ------------------------------------------------------------- transforms
     def with_pose(self, R, t):
         """Same intrinsics, new world-to-camera pose."""

@@ -64,6 +64,7 @@ def test_final_mesh_is_closed_manifold_without_slivers(rec):
     assert mesh_quality(rec.raw_mesh)["min_angle_deg"] < 1.0
     assert rec.report["raw_mesh_volume_mm3"] == pytest.approx(rec.raw_mesh.volume)
     assert rec.report["watertight"] and rec.report["surface"]["watertight"]
+    assert 0.6 < rec.report["surface"]["pixel_footprint_mm"] < 0.8  # the remesh edge's floor (sample: 0.69 mm)
     # smoothing and remeshing change the volume by little (measured -0.11 %)
     assert abs(rec.mesh.volume / rec.raw_mesh.volume - 1) < 0.005
 

@@ -88,3 +88,27 @@ def test_a_coarser_centreline_grid_keeps_the_measures():
         q = m.centreline - p0
         # measured 0.51 mm on 1 mm voxels: the path runs on voxel centres, the axis (y = 0) lies between two
         assert np.median(np.linalg.norm(q - np.outer(q @ a, a), axis=1)) < m.params["centreline_voxel_mm"]
+
+
+def test_pixel_footprint_sets_the_remesh_edge_floor():
+    """reconstruct passes its cameras' pixel size at the specimen to finish_surface (sample: ~0.69 mm)."""
+    import json
+    from pathlib import Path
+
+    from organlab.camera import Camera
+    from organlab.grid import VoxelGrid
+    from organlab.pipeline import pixel_footprint
+
+    root = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+    t = json.loads((root / "truth.json").read_text())
+    c = t["camera"]
+    cams = [Camera(c["K"], c["dist"], v["R"], v["t"], tuple(c["image_size"])) for v in t["views"]]
+    grid = VoxelGrid.from_roi((-70, -70, 0), (70, 70, 200), 1.0)
+    fp = pixel_footprint(cams, grid)
+    # by hand: the distance of the camera centre to the roi's centre over the mean focal length
+    # (the table turns the camera about the axis, so every view's depth is about the same)
+    centre = np.array([0.0, 0.0, 100.0])
+    depth = float((cams[0].R @ centre + cams[0].t)[2])
+    assert fp == pytest.approx(depth / np.mean([c["K"][0][0], c["K"][1][1]]), rel=0.02)
+    assert 0.6 < fp < 0.8  # the sample's 0.69 mm
+    assert cams[0].pixel_footprint(cams[0].center - cams[0].R[2]) == float("inf")  # behind the camera

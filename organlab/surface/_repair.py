@@ -234,9 +234,11 @@ def finish_surface(
         See :func:`remesh_mesh`.
     min_edge_mm : float, mm
         Smallest automatic target edge: about what one pixel of the views
-        resolves at the specimen (0.69 mm for the bundled sample's cameras);
-        shorter edges add faces, not shape (at 0.25 mm voxels: 4x the faces
-        and twice the time for 0.004 mm closer to the raw surface).
+        resolves at the specimen (``organlab reconstruct`` and the viewer pass
+        their cameras' :func:`organlab.pipeline.pixel_footprint`; the default
+        0.75 mm is about the bundled sample's 0.69 mm); shorter edges add
+        faces, not shape (at 0.25 mm voxels: 4x the faces and twice the time
+        for 0.004 mm closer to the raw surface).
     keep_volume : bool
         After remeshing, offset the surface along its normals (by hundredths
         of a mm) so that it encloses the input mesh's volume again.

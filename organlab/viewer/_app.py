@@ -300,10 +300,11 @@ class SessionViewer:
         session was not measured (or None).
         """
         from ..errors import OrganlabError
+        from ..pipeline import pixel_footprint
         from ..surface import finish_surface, measure_aaa
 
         t1 = time.perf_counter()
-        mesh, _ = finish_surface(raw, voxel_size=grid.voxel_size)
+        mesh, _ = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=pixel_footprint(self.cameras, grid))
         tm["finish"] = time.perf_counter() - t1
         check()
         aaa = error = None
