@@ -68,7 +68,7 @@ class SilhouetteModel:
     differences : list of (H, W) float32 or None
         Per view, :func:`difference` of the image and the background, or
         the keyed views' Delta E (exposure divided out, cast shadows 0).
-    gains : list of float or None
+    gains : list of float
         Keyed views' exposure gains against the background (1 otherwise).
     """
 
@@ -173,8 +173,8 @@ class SilhouetteModel:
         """Each view's automatic threshold, None for given masks; cached.
 
         Subtraction: Li's, at least :attr:`floor`.  Keying: from the border
-        band's noise and clutter, capped by Li's
-        (:func:`organlab._keying.auto_key_threshold`).
+        band's noise and clutter and the background next to the specimen,
+        capped by Li's (:func:`organlab._keying.auto_key_threshold`).
         """
         todo = [i for i in range(len(self)) if self.masks[i] is None and self._auto[i] is None]
         for i, t in zip(todo, _map_views(self._auto_threshold, todo)):

@@ -38,7 +38,8 @@ class Controls:
             )
             self.auto = gui.add_checkbox(
                 "Automatic threshold", initial_value=True, disabled=auto is None,
-                hint="per view: from the border band's noise and clutter, at most Li's" if keyed else
+                hint="per view: above the noise of the image border and of the background next to the specimen, "
+                "at most Li's" if keyed else
                 "Li's automatic threshold, per view, at least 5 x the background frames' noise")
             self.voxel = gui.add_slider("Voxel size (mm)", min=0.5, max=5.0, step=0.5, initial_value=st.voxel_size)
             self.method = gui.add_dropdown("Method", METHODS, initial_value=st.method)
