@@ -337,9 +337,8 @@ def test_capture_listener_carves_as_the_table_turns(sample):
         live.stop()
 
 
-def test_backdrop_session_without_frames(sample, tmp_path):
-    """A session keyed against a declared backdrop colour, with no background frames: the viewer keys
-    its views (Delta E) as organlab reconstruct does, and re-keys at a chosen threshold."""
+def _on_cloth(sample, root, colours):
+    """The sample's specimen pasted on a cloth of a colour per view (PNG), no background frames."""
     import json
     import shutil
     from pathlib import Path
@@ -348,21 +347,34 @@ def test_backdrop_session_without_frames(sample, tmp_path):
 
     from organlab.session import load_session
     from organlab.silhouette import silhouettes
-    from organlab.viewer import SessionViewer
 
-    root = tmp_path / "blue"
     shutil.copytree(sample, root)
     s = load_session(root)
     rng = np.random.default_rng(5)
     doc = json.loads((root / "session.json").read_text())
-    for v, sil, entry in zip(s.views, silhouettes(s), doc["views"]):  # the specimen pasted on a blue cloth
+    for k, (v, sil, entry) in enumerate(zip(s.views, silhouettes(s), doc["views"])):
         img = s.read(v.image).astype(float)
         a = sil.coverage[..., None]
-        out = a * img + (1 - a) * (np.array([20.0, 60.0, 200.0]) + rng.normal(0, 2.0, img.shape))
+        out = a * img + (1 - a) * (np.array(colours(k), float) + rng.normal(0, 2.0, img.shape))
         # PNG: JPEG's chroma subsampling would bleed the red into the blue by a pixel or two
         entry["image"] = f"views/{Path(v.image).stem}.png"
         cv2.imwrite(str(root / entry["image"]), np.clip(np.rint(out), 0, 255).astype(np.uint8)[:, :, ::-1])
-    doc.update(background_images=[], backdrop={"color": [20, 60, 200]})
+    doc["background_images"] = []
+    return doc
+
+
+def test_backdrop_session_without_frames(sample, tmp_path):
+    """A session keyed against a declared backdrop colour, with no background frames: the viewer keys
+    its views (Delta E) as organlab reconstruct does, and re-keys at a chosen threshold."""
+    import json
+
+    from organlab.session import load_session
+    from organlab.silhouette import silhouettes
+    from organlab.viewer import SessionViewer
+
+    root = tmp_path / "blue"
+    doc = _on_cloth(sample, root, lambda k: (20, 60, 200))
+    doc["backdrop"] = {"color": [20, 60, 200]}
     (root / "session.json").write_text(json.dumps(doc))
     keyed = load_session(root)
     views = list(range(0, 36, 3))
@@ -379,5 +391,31 @@ def test_backdrop_session_without_frames(sample, tmp_path):
         g = v.rerun(threshold=60.0)  # Delta E 60: the specimen's darker parts are lost
         assert v.wait(g, timeout=120) and not v.errors
         assert v.result.mesh.volume < 0.97 * ref  # measured 93.8 %
+    finally:
+        v.stop()
+
+
+def test_border_backdrop_estimated_over_every_view(sample, tmp_path):
+    """'border': the viewer showing every third view estimates the cloth's colour over all views, as
+    reconstruct does (here the cloth is lighter in the views it does not show)."""
+    import json
+
+    from organlab.session import load_session
+    from organlab.silhouette import SilhouetteModel, silhouettes
+    from organlab.viewer import SessionViewer
+
+    root = tmp_path / "cloth"
+    doc = _on_cloth(sample, root, lambda k: (20, 60, 200) if k % 3 == 0 else (45, 85, 170))
+    doc["backdrop"] = {"color": "border"}
+    (root / "session.json").write_text(json.dumps(doc))
+    s = load_session(root)
+    views = list(range(0, 36, 3))
+    expect = silhouettes(s)
+    v = SessionViewer(s, voxel_size=2.0, views=views, port=0, stream=False)
+    try:
+        assert v.wait(timeout=180), v.errors
+        np.testing.assert_allclose(v._model.background, SilhouetteModel.from_session(s).background)
+        for j, i in enumerate(views):
+            np.testing.assert_array_equal(v.result.masks[j], expect[i].mask)
     finally:
         v.stop()
