@@ -30,7 +30,7 @@ import numpy as np
 
 from .silhouette import as_arrays
 
-__all__ = ["AGREEMENT_LIMIT", "ViewAgreement", "model_mask", "view_agreement"]
+__all__ = ["AGREEMENT_LIMIT", "ViewAgreement", "model_mask", "suggest_angles", "view_agreement"]
 
 #: Largest accepted fraction of a silhouette left unexplained by the model
 #: beyond the outline tolerance (see the module docstring for the measured figures).
@@ -167,3 +167,78 @@ def _warnings(views, names, limit):
         cause = ("likely causes: a wrong angle label for these views, the specimen or the board moved at these "
                  "stops, or a bad silhouette threshold in these images")
     return [f"{head}; {cause}"]
+
+
+def suggest_angles(table_camera, angles_deg, silhouettes, flagged, grid, *, names=None, search_deg=20.0,
+                   step_deg=0.5, gain=0.005):
+    """For views flagged by :func:`view_agreement`: the table angle at which each agrees best.
+
+    A wrong angle label is the first likely cause of a flagged view.  The
+    hull of the views that are not flagged (the sub-voxel hull field, meshed)
+    is projected through the table camera at angles around the label; the
+    angle whose projection matches the flagged view's silhouette best (IoU)
+    is suggested when it beats the label by more than ``gain`` and no other
+    angle more than 2 degrees away comes within ``gain / 2`` of it (a nearly
+    rotation-symmetric specimen matches many angles: nothing is suggested).
+
+    Parameters
+    ----------
+    table_camera : Camera
+        The camera at table angle 0 (``TurntableCalibration.camera``).
+    angles_deg : sequence of float
+        Every view's labelled table angle, degrees.
+    silhouettes : sequence of Silhouette or (H, W) arrays
+        One per view (compared at ``coverage >= 0.5``).
+    flagged : sequence of int
+        The views to look at (e.g. those whose ``ok`` is False).
+    grid : VoxelGrid
+        Where to carve the other views' hull (the run's grid).
+    names : sequence of str, optional
+    search_deg, step_deg : float, degrees
+        Angles tried: label +- ``search_deg`` in steps of ``step_deg``.
+    gain : float
+        Smallest IoU gain over the label worth a suggestion.
+
+    Returns
+    -------
+    dict of str -> dict
+        Per flagged view (by name): ``labelled``, ``best`` (degrees or None),
+        ``iou_labelled``, ``iou_best``.
+    """
+    from .carving import hull_field
+    from .surface import mesh_from_field
+
+    n = len(silhouettes)
+    if len(angles_deg) != n:
+        raise ValueError(f"got {len(angles_deg)} angles for {n} silhouettes")
+    names = list(names) if names is not None else [f"views[{i}]" for i in range(n)]
+    flagged = sorted({int(i) for i in flagged})
+    others = [i for i in range(n) if i not in flagged]
+    if not flagged or len(others) < 3:
+        return {}
+    cov = as_arrays(silhouettes, "coverage")
+    cams = [table_camera.at_table_angle(angles_deg[i]) for i in others]
+    mesh = mesh_from_field(hull_field([cov[i] for i in others], cams, grid, sparse=True), grid)
+    out = {}
+    for i in flagged:
+        sil = np.asarray(cov[i]) >= 0.5
+        tried = angles_deg[i] + np.arange(-search_deg, search_deg + step_deg / 2, step_deg)
+        iou = np.array([_iou(model_mask(mesh, table_camera.at_table_angle(a), sil.shape), sil) for a in tried])
+        k, at_label = int(np.argmax(iou)), int(np.argmin(np.abs(tried - angles_deg[i])))
+        rivals = np.abs(tried - tried[k]) > 2.0
+        clear = iou[k] - iou[at_label] > gain and not (rivals & (iou > iou[k] - gain / 2)).any()
+        out[names[i]] = {"labelled": float(angles_deg[i]), "best": float(tried[k]) if clear else None,
+                         "iou_labelled": float(iou[at_label]), "iou_best": float(iou[k])}
+    return out
+
+
+def _iou(a, b):
+    union = np.count_nonzero(a | b)
+    return np.count_nonzero(a & b) / union if union else 1.0
+
+
+def suggestion_text(suggestions):
+    """One clause for a warning: the views that agree best at another angle (empty when none)."""
+    parts = [f"{name} agrees best at {s['best']:g} degrees (labelled {s['labelled']:g}; IoU {s['iou_best']:.3f} "
+             f"against {s['iou_labelled']:.3f})" for name, s in suggestions.items() if s["best"] is not None]
+    return "; ".join(parts)

@@ -330,16 +330,34 @@ def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memo
                       tolerance=tolerance if isinstance(tolerance, int) else 0, where=str(session.json_path))
 
 
+def _angle_suggestions(session, grid, sils, cal, agr, names):
+    """For a few flagged views whose poses come from their table angles: the angle each agrees best at."""
+    from .agreement import _MANY, suggest_angles
+
+    bad = [i for i, v in enumerate(agr.views) if not v["ok"]]
+    table = None if cal is None or cal.turntable is None else cal.turntable.camera
+    if not bad or table is None or len(bad) > _MANY * len(agr.views) or any(session.views[i].pose is not None for i in bad):
+        return {}
+    return suggest_angles(table, [v.angle_deg for v in session.views], sils, bad, grid, names=names)
+
+
 def _add_checks(report, session, grid, mesh, cameras, sils, cal):
     """Trust checks into the report (issue 15): view agreement, what loading corrected."""
-    from .agreement import view_agreement
+    from .agreement import suggestion_text, view_agreement
 
     names = [session.relpath(v.image) for v in session.views]
     agr = view_agreement(mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
     for row, a in zip(report["views"], agr.views):
         row["agreement"] = a
     report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
-    report.setdefault("warnings", []).extend(agr.warnings)
+    warnings = list(agr.warnings)
+    suggested = _angle_suggestions(session, grid, sils, cal, agr, names)
+    if suggested:
+        report["agreement"]["suggested_angles"] = suggested
+        text = suggestion_text(suggested)
+        if text and warnings:
+            warnings[0] += f"; {text}"
+    report.setdefault("warnings", []).extend(warnings)
     if getattr(session, "notes", ()):
         report["notes"] = list(session.notes)  # re-orthonormalised rotations
     # calibration images not used, and why (no board found, board moved)
