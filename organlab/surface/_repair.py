@@ -6,7 +6,9 @@ sizes; ``meshing_repair_non_manifold_edges`` ('Remove Faces') opens new holes,
 so holes are closed and specks dropped after it; isotropic remeshing takes its
 target edge length as ``PureValue(mm)``; it keeps edges sharper than
 ``featuredeg`` as features, so the marching-cubes staircase is first relaxed by
-Taubin smoothing (volume-preserving to about 0.1 %).
+Taubin smoothing (volume-preserving to about 0.1 %); folds (faces more than
+90 degrees apart: voxel-scale crevices, lips and handles below 1 mm voxels)
+are cut out and filled before remeshing, see :mod:`._folds`.
 """
 
 from __future__ import annotations
@@ -272,7 +274,10 @@ def finish_surface(
 
     Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and
     :func:`remesh_mesh` (isotropic) in that order, then a last repair when the
-    remeshing left a defect.
+    remeshing left a defect.  Before remeshing, the faces within two target
+    edges of a fold (neighbouring faces more than 90 degrees apart) are cut
+    out and the holes filled; after it, so are those of faces still below
+    ``min_angle``, and the surface is remeshed once more.
 
     Parameters
     ----------
