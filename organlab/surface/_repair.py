@@ -6,7 +6,9 @@ sizes; ``meshing_repair_non_manifold_edges`` ('Remove Faces') opens new holes,
 so holes are closed and specks dropped after it; isotropic remeshing takes its
 target edge length as ``PureValue(mm)``; it keeps edges sharper than
 ``featuredeg`` as features, so the marching-cubes staircase is first relaxed by
-Taubin smoothing (volume-preserving to about 0.1 %).
+Taubin smoothing (volume-preserving to about 0.1 %); folds (faces more than
+90 degrees apart: voxel-scale crevices, lips and handles below 1 mm voxels)
+are cut out and filled before remeshing, see :mod:`._folds`.
 """
 
 from __future__ import annotations
@@ -193,6 +195,60 @@ def _restore_volume(mesh, volume):
     return out
 
 
+def _clear_folds(mesh, radius_mm, *, speck_mm, fold_deg=90.0, max_rounds=3):
+    """Cut out and fill the spots where neighbouring faces are more than ``fold_deg`` apart (see :mod:`._folds`)."""
+    from ._folds import cut_and_fill, fold_edges
+
+    out, found, removed = mesh, [], 0
+    for _ in range(max_rounds):
+        fe = fold_edges(out, fold_deg)
+        found.append(len(fe))
+        if len(fe) == 0:
+            break
+        out, n = cut_and_fill(out, out.vertices[np.unique(fe)], radius_mm, speck_mm=speck_mm)
+        if n == 0:
+            break
+        removed += n
+    return out, _step("folds", mesh, out, fold_edges=found, faces_removed=removed, radius_mm=float(radius_mm))
+
+
+def _clear_slivers(mesh, target_mm, *, speck_mm, feature_deg, min_angle, max_rounds=3):
+    """Cut out and fill the faces below ``min_angle`` left by remeshing, then remesh once more."""
+    from ._folds import cut_and_fill
+    from ._quality import triangle_angles
+
+    best, best_angle = mesh, mesh_quality(mesh)["min_angle_deg"]
+    out, rounds = mesh, 0
+    while best_angle < min_angle and rounds < max_rounds:
+        rounds += 1
+        bad = triangle_angles(out).min(axis=1) < min_angle
+        cut, n = cut_and_fill(out, out.vertices[np.unique(out.faces[bad])], 2.0 * target_mm, speck_mm=speck_mm)
+        if n == 0:
+            break
+        out, _ = remesh_mesh(cut, target_mm, feature_deg=feature_deg, min_angle=min_angle, max_passes=1)
+        angle = mesh_quality(out)["min_angle_deg"]
+        if angle > best_angle:
+            best, best_angle = out, angle
+    return best, _step("slivers", mesh, best, rounds=rounds)
+
+
+def _remesh_step(mesh, target_mm, voxel_size, feature_deg, min_angle, keep_volume):
+    """Folds cleared, isotropic remeshing, slivers cleared, volume restored: ``(Mesh, [records])``."""
+    speck = 3.0 * voxel_size
+    out, folds = _clear_folds(mesh, 2.0 * target_mm, speck_mm=speck)
+    out, rec = remesh_mesh(out, target_mm, feature_deg=feature_deg, min_angle=min_angle)
+    recs = [folds, rec]
+    if rec["min_angle_deg"][1] < min_angle:
+        out, slivers = _clear_slivers(out, target_mm, speck_mm=speck, feature_deg=feature_deg, min_angle=min_angle)
+        recs.append(slivers)
+    if keep_volume:
+        remeshed = out
+        out = _restore_volume(remeshed, mesh.volume)
+        rec["normal_offset_mm"] = (mesh.volume - remeshed.volume) / remeshed.area
+        rec["volume_change_pct"] = 100.0 * (out.volume - mesh.volume) / mesh.volume
+    return out, recs
+
+
 def _check_mesh(mesh):
     from ..errors import OrganlabError
 
@@ -218,7 +274,10 @@ def finish_surface(
 
     Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and
     :func:`remesh_mesh` (isotropic) in that order, then a last repair when the
-    remeshing left a defect.
+    remeshing left a defect.  Before remeshing, the faces within two target
+    edges of a fold (neighbouring faces more than 90 degrees apart) are cut
+    out and the holes filled; after it, so are those of faces still below
+    ``min_angle``, and the surface is remeshed once more.
 
     Parameters
     ----------
@@ -263,14 +322,8 @@ def finish_surface(
         out, rec = smooth_mesh(out)
         steps.append(rec)
     if remesh is not None:
-        before = out
-        out, rec = remesh_mesh(out, float(remesh), feature_deg=feature_deg, min_angle=min_angle)
-        if keep_volume:
-            remeshed = out
-            out = _restore_volume(remeshed, before.volume)
-            rec["normal_offset_mm"] = (before.volume - remeshed.volume) / remeshed.area
-            rec["volume_change_pct"] = 100.0 * (out.volume - before.volume) / before.volume
-        steps.append(rec)
+        out, recs = _remesh_step(out, float(remesh), voxel_size, feature_deg, min_angle, keep_volume)
+        steps += recs
         q = mesh_quality(out)
         if repair and (q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]):
             out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
