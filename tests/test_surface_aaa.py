@@ -59,7 +59,7 @@ def test_final_mesh_is_closed_manifold_without_slivers(rec):
     q = mesh_quality(rec.mesh)
     assert q["boundary_edges"] == q["nonmanifold_edges"] == q["misoriented_edges"] == 0
     assert q["nonmanifold_vertices"] == 0 and q["components"] == 1
-    assert q["min_angle_deg"] >= 20.0  # measured 23.6 degrees, aspect ratio <= 2.05
+    assert q["min_angle_deg"] >= 20.0  # measured 24.1 degrees (23.6 before the fold clean-up), aspect ratio <= 2.01
     # the marching-cubes mesh had slivers (measured 0.0003 degrees); the report keeps its volume
     assert mesh_quality(rec.raw_mesh)["min_angle_deg"] < 1.0
     assert rec.report["raw_mesh_volume_mm3"] == pytest.approx(rec.raw_mesh.volume)
