@@ -132,14 +132,19 @@ class SilhouetteModel:
             raise SessionError(f"{self.names[i]}: {e}") from None
 
     @classmethod
-    def from_session(cls, session, *, images=None, mode="color", background="median"):
-        """Prepare every view of a session (as :func:`organlab.silhouette.silhouettes` reads it).
+    def from_session(cls, session, *, images=None, views=None, mode="color", background="median"):
+        """Prepare a session's views (as :func:`organlab.silhouette.silhouettes` reads them).
 
         Parameters
         ----------
         session : Session
         images : sequence of (H, W) or (H, W, 3) uint8, optional
-            The views' images, already read; read from the session when omitted.
+            The images of ``views``, already read (one per view taken);
+            read from the session when omitted.
+        views : sequence of int, optional
+            Only these views (default every one), in this order.  A
+            ``"border"`` backdrop is still estimated over every view without
+            a mask, so that these views are keyed as the whole session is.
         mode : {'color', 'grey'}
         background : {'median', 'mean'}
 
@@ -147,23 +152,34 @@ class SilhouetteModel:
         -------
         SilhouetteModel
         """
-        n = len(session.views)
-        if images is not None and len(images) != n:
-            raise ValueError(f"got {len(images)} images for {n} views")
+        idx = list(range(len(session.views))) if views is None else [int(i) for i in views]
+        if images is not None and len(images) != len(idx):
+            raise ValueError(f"got {len(images)} images for {len(idx)} views")
+        given = dict(zip(idx, images)) if images is not None else {}
+
+        def image(i):
+            return given[i] if i in given else session.read(session.views[i].image, key=f"views[{i}].image")
+
         masks, imgs, names = [], [], []
-        for i, view in enumerate(session.views):
+        for i in idx:
+            view = session.views[i]
             names.append(f"{session.json_path}: views[{i}] ({session.relpath(view.image)})")
             if view.mask is not None:
                 masks.append(session.read(view.mask, key=f"views[{i}].mask", grey=True) > 0)
                 imgs.append(None)
             else:
                 masks.append(None)
-                imgs.append(images[i] if images is not None else session.read(view.image, key=f"views[{i}].image"))
+                imgs.append(image(i))
         frames = None
         backdrop = getattr(session, "backdrop", None)
         needs_frames = backdrop is None or backdrop.get("color") == "frames"
         if any(m is None for m in masks) and needs_frames:
             frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
+        if backdrop is not None and backdrop.get("color") == "border" and len(idx) < len(session.views):
+            from ._keying import estimate_backdrop
+
+            every = [image(i) for i, v in enumerate(session.views) if v.mask is None]
+            backdrop = {**backdrop, "color": tuple(float(c) for c in estimate_backdrop(every))}
         return cls(imgs, frames, mode=mode, background=background, masks=masks, names=names, backdrop=backdrop)
 
     def __len__(self):

@@ -337,8 +337,9 @@ def test_capture_listener_carves_as_the_table_turns(sample):
         live.stop()
 
 
-def _on_cloth(sample, root, colours):
-    """The sample's specimen pasted on a cloth of a colour per view (PNG), no background frames."""
+def _on_cloth(sample, root, colours, backdrop):
+    """The sample's specimen pasted on a cloth of a colour per view (PNG), no background frames, keyed
+    against ``backdrop``; returns the loaded session."""
     import json
     import shutil
     from pathlib import Path
@@ -359,32 +360,31 @@ def _on_cloth(sample, root, colours):
         # PNG: JPEG's chroma subsampling would bleed the red into the blue by a pixel or two
         entry["image"] = f"views/{Path(v.image).stem}.png"
         cv2.imwrite(str(root / entry["image"]), np.clip(np.rint(out), 0, 255).astype(np.uint8)[:, :, ::-1])
-    doc["background_images"] = []
-    return doc
+    doc.update(background_images=[], backdrop=backdrop)
+    (root / "session.json").write_text(json.dumps(doc))
+    return load_session(root)
+
+
+def _keyed_viewer(session, views):
+    """A viewer of ``views`` of a backdrop session, after its first run, whose masks are the pipeline's."""
+    from organlab.silhouette import silhouettes
+    from organlab.viewer import SessionViewer
+
+    expect = silhouettes(session)
+    v = SessionViewer(session, voxel_size=2.0, views=views, port=0, stream=False)
+    assert v.wait(timeout=180), v.errors
+    for j, i in enumerate(views):  # the pipeline's silhouettes, view for view
+        np.testing.assert_array_equal(v.result.masks[j], expect[i].mask)
+    return v
 
 
 def test_backdrop_session_without_frames(sample, tmp_path):
     """A session keyed against a declared backdrop colour, with no background frames: the viewer keys
     its views (Delta E) as organlab reconstruct does, and re-keys at a chosen threshold."""
-    import json
-
-    from organlab.session import load_session
-    from organlab.silhouette import silhouettes
-    from organlab.viewer import SessionViewer
-
-    root = tmp_path / "blue"
-    doc = _on_cloth(sample, root, lambda k: (20, 60, 200))
-    doc["backdrop"] = {"color": [20, 60, 200]}
-    (root / "session.json").write_text(json.dumps(doc))
-    keyed = load_session(root)
-    views = list(range(0, 36, 3))
-    expect = silhouettes(keyed)
-    v = SessionViewer(keyed, voxel_size=2.0, views=views, port=0, stream=False)
+    keyed = _on_cloth(sample, tmp_path / "blue", lambda k: (20, 60, 200), {"color": [20, 60, 200]})
+    v = _keyed_viewer(keyed, list(range(0, 36, 3)))
     try:
-        assert v.wait(timeout=180), v.errors
         assert v.threshold_units == "Delta E" and "Delta E" in v.controls.threshold._impl.props.hint
-        for j, i in enumerate(views):  # the pipeline's silhouettes, view for view
-            np.testing.assert_array_equal(v.result.masks[j], expect[i].mask)
         ref = keyed.reference["volume_mm3"]
         # 12 views, 2 mm: measured 100.7 % (the frames session in the same viewer: 101 %)
         assert abs(v.result.mesh.volume / ref - 1) < 0.03
@@ -398,24 +398,12 @@ def test_backdrop_session_without_frames(sample, tmp_path):
 def test_border_backdrop_estimated_over_every_view(sample, tmp_path):
     """'border': the viewer showing every third view estimates the cloth's colour over all views, as
     reconstruct does (here the cloth is lighter in the views it does not show)."""
-    import json
+    from organlab.silhouette import SilhouetteModel
 
-    from organlab.session import load_session
-    from organlab.silhouette import SilhouetteModel, silhouettes
-    from organlab.viewer import SessionViewer
-
-    root = tmp_path / "cloth"
-    doc = _on_cloth(sample, root, lambda k: (20, 60, 200) if k % 3 == 0 else (45, 85, 170))
-    doc["backdrop"] = {"color": "border"}
-    (root / "session.json").write_text(json.dumps(doc))
-    s = load_session(root)
-    views = list(range(0, 36, 3))
-    expect = silhouettes(s)
-    v = SessionViewer(s, voxel_size=2.0, views=views, port=0, stream=False)
+    s = _on_cloth(sample, tmp_path / "cloth", lambda k: (20, 60, 200) if k % 3 == 0 else (45, 85, 170),
+                  {"color": "border"})
+    v = _keyed_viewer(s, list(range(0, 36, 3)))
     try:
-        assert v.wait(timeout=180), v.errors
         np.testing.assert_allclose(v._model.background, SilhouetteModel.from_session(s).background)
-        for j, i in enumerate(views):
-            np.testing.assert_array_equal(v.result.masks[j], expect[i].mask)
     finally:
         v.stop()

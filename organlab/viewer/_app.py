@@ -141,23 +141,7 @@ class SessionViewer:
         (background subtraction, or keying for a session with a ``backdrop``, as organlab reconstruct)."""
         from ..silhouette import SilhouetteModel
 
-        s = self.session
-        masks = [s.read(s.views[i].mask, key=f"views[{i}].mask", grey=True) > 0 if s.views[i].mask is not None else None
-                 for i in self.view_ids]
-        frames = None
-        backdrop = s.backdrop
-        if any(m is None for m in masks) and (backdrop is None or backdrop["color"] == "frames"):
-            frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
-        if backdrop is not None and backdrop["color"] == "border" and len(self.view_ids) < len(s.views):
-            # the border's colour over every view without a mask, as organlab reconstruct estimates it
-            from .._keying import estimate_backdrop
-
-            shown = dict(zip(self.view_ids, self.images))
-            imgs = [shown[i] if i in shown else s.read(v.image, key=f"views[{i}].image")
-                    for i, v in enumerate(s.views) if v.mask is None]
-            backdrop = {**backdrop, "color": tuple(float(c) for c in estimate_backdrop(imgs))}
-        names = [f"{s.json_path}: views[{i}] ({s.relpath(s.views[i].image)})" for i in self.view_ids]
-        self._model = SilhouetteModel(self.images, frames, masks=masks, names=names, backdrop=backdrop)
+        self._model = SilhouetteModel.from_session(self.session, images=self.images, views=self.view_ids)
         self.threshold_units = self._model.units
         self.auto_thresholds = self._model.auto_thresholds()
         autos = [t for t in self.auto_thresholds if t is not None]
