@@ -91,14 +91,12 @@ def model_mask(mesh, camera, shape):
 def _one_view(model, sil, tol):
     from scipy import ndimage
 
-    inter = int(np.count_nonzero(model & sil))
-    union = int(np.count_nonzero(model | sil))
     sil_px = int(np.count_nonzero(sil))
     miss = sil & ~model
     extra = model & ~sil
     far_miss = int(np.count_nonzero(miss & (ndimage.distance_transform_edt(sil) > tol)))
     return {
-        "iou": inter / union if union else 1.0,
+        "iou": _iou(model, sil),
         "silhouette_px": sil_px,
         "model_px": int(np.count_nonzero(model)),
         "unexplained_silhouette_px": int(np.count_nonzero(miss)),
