@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .silhouette import as_arrays
+from .masks import as_arrays
 
 __all__ = ["AGREEMENT_LIMIT", "ViewAgreement", "model_mask", "suggest_angles", "view_agreement"]
 

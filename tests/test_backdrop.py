@@ -87,7 +87,7 @@ def hard_view():
 
 
 def test_keying_rejects_the_cast_shadow_and_the_exposure_change(hard_view):
-    from organlab import _keying
+    from organlab.silhouette import _keying
 
     img, bg, truth, shadow = hard_view
     assert shadow.sum() > 0.2 * truth.sum()  # a real shadow, a fifth of the specimen's area at least
@@ -104,7 +104,7 @@ def test_keying_rejects_the_cast_shadow_and_the_exposure_change(hard_view):
 
 def test_keying_keeps_dark_parts_on_a_black_backdrop():
     """A grey disk with a dark (grey 24) band on black cloth (noise 2): Li on grey levels loses the band."""
-    from organlab import _keying
+    from organlab.silhouette import _keying
 
     rng = np.random.default_rng(1)
     h, w = 240, 320

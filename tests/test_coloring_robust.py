@@ -213,7 +213,7 @@ def test_dino_colouring_keeps_the_model(dino):
 @pytest.mark.slow
 def test_dino_backdrop_keying_matches_the_authors_masks(dino):
     """The photos keyed against the border's colour (no masks, no frames) against the authors' recipe."""
-    from organlab import _keying
+    from organlab.silhouette import _keying
 
     data, imgs, cams, masks = dino
     colour = _keying.estimate_backdrop(imgs)

@@ -15,10 +15,6 @@ import pytest
 from organlab.errors import SessionError
 from organlab.silhouette import (
     SilhouetteModel,
-    _disk,
-    _fill_holes,
-    _keep_components,
-    _coverage_in,
     background_model,
     background_noise,
     clean_mask,
@@ -26,6 +22,7 @@ from organlab.silhouette import (
     session_silhouettes,
     silhouette,
 )
+from organlab.silhouette._subtract import _coverage_in, _disk, _fill_holes, _keep_components
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 H, W = 120, 160

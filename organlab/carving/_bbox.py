@@ -37,7 +37,7 @@ import numpy as np
 from .._nbcam import pack_camera
 from ..camera import Camera
 from ..grid import VoxelGrid
-from ..silhouette import Silhouette
+from ..masks import Silhouette
 
 __all__ = ["carve", "carve_reference", "ProgressiveCarver"]
 

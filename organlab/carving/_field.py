@@ -67,7 +67,7 @@ from numba import njit, prange
 
 from .._nbcam import pack_camera, to_camera, to_pixel
 from ..camera import Camera
-from ..silhouette import as_arrays
+from ..masks import as_arrays
 from ._bbox import _check_grid
 
 __all__ = ["hull_field"]

@@ -15,11 +15,10 @@ view's own ``mask`` where the session gives one.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from .session import Session, load_session
+from ..masks import Silhouette
+from ._kernels import color_distance, median_frames
 
 __all__ = [
     "background_model",
@@ -28,12 +27,7 @@ __all__ = [
     "auto_threshold",
     "clean_mask",
     "coverage",
-    "Silhouette",
     "silhouette",
-    "silhouettes",
-    "session_silhouettes",
-    "as_arrays",
-    "SilhouetteModel",
 ]
 
 
@@ -133,8 +127,6 @@ def difference(image, background, *, mode="color"):
 
 def _median_uint8(stack):
     """``np.median(stack, axis=0).astype(np.float32)`` of uint8 frames, by a numba kernel (same values)."""
-    from ._silkernels import median_frames
-
     n = stack.shape[0]
     return median_frames(np.ascontiguousarray(stack).reshape(n, -1)).reshape(stack.shape[1:])
 
@@ -145,8 +137,6 @@ def _color_distance_uint8(image, background):
     bg = np.asarray(background)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3 or bg.shape != img.shape:
         return None
-    from ._silkernels import color_distance
-
     return color_distance(np.ascontiguousarray(img), np.ascontiguousarray(bg, dtype=np.float32))
 
 
@@ -354,31 +344,6 @@ def _coverage_in(image, background, m8, window):
     return cov
 
 
-@dataclass(frozen=True)
-class Silhouette:
-    """The silhouette of one view.
-
-    Attributes
-    ----------
-    mask : (H, W) bool
-    coverage : (H, W) float32 in [0, 1]
-        Sub-pixel silhouette (equal to ``mask`` for a given mask).
-    threshold : float or None
-        Grey-level threshold used (None for a given mask).
-    source : str
-        ``'subtraction'``, ``'backdrop'`` (keyed, see :mod:`organlab._keying`) or ``'given'``.
-    info : dict or None
-        How a keyed view was thresholded (threshold's reason, noise, clutter,
-        Li's threshold, exposure gain, shadow fraction, closing radius).
-    """
-
-    mask: np.ndarray
-    coverage: np.ndarray
-    threshold: float | None
-    source: str
-    info: dict | None = None
-
-
 def silhouette(image, background, *, threshold=None, mode="color", floor=0.0, **clean):
     """Silhouette of one view by background subtraction.
 
@@ -405,61 +370,3 @@ def silhouette(image, background, *, threshold=None, mode="color", floor=0.0, **
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
     mask = clean_mask(diff > t, **clean)
     return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
-
-
-def silhouettes(
-    session, *, images=None, threshold=None, mode="color", background="median", progress=None, **clean
-):
-    """Silhouettes of every view of a session.
-
-    A view with a ``mask`` in ``session.json`` uses it as given (non-zero =
-    specimen); the others are found by background subtraction against the
-    model of ``background_images`` or, when the session declares a
-    ``backdrop``, by keying against it in CIE Lab (:mod:`organlab._keying`).
-    Through :class:`SilhouetteModel`, as the viewer and the widgets.
-
-    Parameters
-    ----------
-    session : Session or str or Path
-    images : sequence of (H, W) or (H, W, 3) uint8, optional
-        The views' images, already read (one per view); read from the session
-        when omitted.
-    threshold : float, optional
-        The same for every view, grey levels (subtraction) or Delta E
-        (keying); automatic per view when omitted.
-    mode : {'color', 'grey'}
-    background : {'median', 'mean'}
-    progress : callable(done, total), optional
-
-    Returns
-    -------
-    list of Silhouette, one per view
-    """
-    if not isinstance(session, Session):
-        session = load_session(session)
-    model = SilhouetteModel.from_session(session, images=images, mode=mode, background=background)
-    return model.silhouettes(threshold=threshold, progress=progress, **clean)
-
-
-#: The name this function had before organlab 0.2; same function.
-session_silhouettes = silhouettes
-
-
-def as_arrays(silhouettes, attribute):
-    """The masks or coverages of a list of silhouettes, for the carving functions.
-
-    Parameters
-    ----------
-    silhouettes : sequence of Silhouette or of (H, W) arrays
-        What :func:`silhouettes` returns, or plain arrays (passed through).
-    attribute : {'mask', 'coverage'}
-
-    Returns
-    -------
-    list of (H, W) arrays
-    """
-    return [getattr(s, attribute) if isinstance(s, Silhouette) else s for s in silhouettes]
-
-
-# the prepared views (re-exported here; their own module keeps this one about the algorithms)
-from ._silmodel import SilhouetteModel  # noqa: E402

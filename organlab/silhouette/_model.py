@@ -6,18 +6,24 @@ difference image are computed once; a new threshold then only thresholds,
 cleans and computes the coverage (the viewer's and the threshold widget's
 slider).  Both ways of finding a silhouette live behind it: background
 subtraction (grey levels) and, for a session with a ``backdrop``, keying in
-CIE Lab (Delta E, :mod:`organlab._keying`).  The per-view steps run in a few
+CIE Lab (Delta E, :mod:`organlab.silhouette._keying`).  The per-view steps run in a few
 threads: cv2, numpy and the numba kernels release the GIL.
 """
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
-from .errors import SessionError
-from .silhouette import Silhouette, auto_threshold, background_model, background_noise, clean_mask, coverage, difference
+from ..errors import SessionError
+from ..masks import Silhouette
+from ..session import Session, load_session
+from ._keying import KeyInfo, auto_key_threshold, clean_scaled, estimate_backdrop, key_distance
+from ._subtract import auto_threshold, background_model, background_noise, clean_mask, coverage, difference
 
-__all__ = ["SilhouetteModel"]
+__all__ = ["SilhouetteModel", "silhouettes", "session_silhouettes"]
 
 
 class SilhouetteModel:
@@ -49,7 +55,7 @@ class SilhouetteModel:
     backdrop : dict, optional
         A session's ``backdrop`` (``{"color": "frames" | "border" | [r, g, b],
         "shadows": bool}``): the views are keyed in CIE Lab against it
-        (:mod:`organlab._keying`) instead of subtracted from the frames'
+        (:mod:`organlab.silhouette._keying`) instead of subtracted from the frames'
         model; ``"frames"`` needs ``background_frames``, ``"border"`` takes
         the median colour of the views' border bands.  ``mode`` does not
         apply then.
@@ -109,8 +115,6 @@ class SilhouetteModel:
         """The background the views are compared with: the frames' model, or a backdrop colour."""
         color = self.backdrop.get("color", "frames") if self.keyed else "frames"
         if color == "border":
-            from ._keying import estimate_backdrop
-
             return estimate_backdrop(images)
         if color != "frames":
             return np.asarray(color, np.float32)
@@ -122,7 +126,6 @@ class SilhouetteModel:
         try:
             if not self.keyed:
                 return difference(self.images[i], self.background, mode=self.mode)
-            from ._keying import key_distance
 
             d, self.gains[i], sh = key_distance(self.images[i], self.background,
                                                 shadows=bool(self.backdrop.get("shadows", True)))
@@ -176,8 +179,6 @@ class SilhouetteModel:
         if any(m is None for m in masks) and needs_frames:
             frames = [session.read(p, key=f"background_images[{j}]") for j, p in enumerate(session.background_images)]
         if backdrop is not None and backdrop.get("color") == "border" and len(idx) < len(session.views):
-            from ._keying import estimate_backdrop
-
             every = [image(i) for i, v in enumerate(session.views) if v.mask is None]
             backdrop = {**backdrop, "color": tuple(float(c) for c in estimate_backdrop(every))}
         return cls(imgs, frames, mode=mode, background=background, masks=masks, names=names, backdrop=backdrop)
@@ -190,7 +191,7 @@ class SilhouetteModel:
 
         Subtraction: Li's, at least :attr:`floor`.  Keying: from the border
         band's noise and clutter and the background next to the specimen,
-        capped by Li's (:func:`organlab._keying.auto_key_threshold`).
+        capped by Li's (:func:`organlab.silhouette._keying.auto_key_threshold`).
         """
         todo = [i for i in range(len(self)) if self.masks[i] is None and self._auto[i] is None]
         for i, t in zip(todo, _map_views(self._auto_threshold, todo)):
@@ -207,8 +208,6 @@ class SilhouetteModel:
 
     def _auto_threshold(self, i):
         if self.keyed:
-            from ._keying import auto_key_threshold
-
             t, *reasons = auto_key_threshold(self.differences[i])
             self._auto_info[i] = (float(t), *reasons)
             return float(t)
@@ -228,7 +227,7 @@ class SilhouetteModel:
         progress : callable(done, total), optional
         **clean
             Options of :func:`clean_mask` (subtraction; keying cleans with
-            radii from the image scale, :func:`organlab._keying.clean_scaled`).
+            radii from the image scale, :func:`organlab.silhouette._keying.clean_scaled`).
 
         Returns
         -------
@@ -286,8 +285,6 @@ class SilhouetteModel:
         return Silhouette(mask, coverage(self.images[i], self.background, mask), t, "subtraction")
 
     def _keyed(self, i, t, clean):
-        from ._keying import KeyInfo, clean_scaled
-
         if clean:
             raise ValueError(f"clean-up options {sorted(clean)} do not apply to keyed views (a backdrop session): "
                              "keying scales its clean-up to the image")
@@ -308,12 +305,47 @@ class SilhouetteModel:
 
 def _map_views(fn, indices):
     """``[fn(i) for i in indices]`` in a few threads (the cv2, numpy and numba steps release the GIL)."""
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-
     indices = list(indices)
     workers = max(1, min(len(indices), os.cpu_count() or 1))
     if workers == 1:
         return [fn(i) for i in indices]
     with ThreadPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(fn, indices))
+
+
+def silhouettes(
+    session, *, images=None, threshold=None, mode="color", background="median", progress=None, **clean
+):
+    """Silhouettes of every view of a session.
+
+    A view with a ``mask`` in ``session.json`` uses it as given (non-zero =
+    specimen); the others are found by background subtraction against the
+    model of ``background_images`` or, when the session declares a
+    ``backdrop``, by keying against it in CIE Lab (:mod:`organlab.silhouette._keying`).
+    Through :class:`SilhouetteModel`, as the viewer and the widgets.
+
+    Parameters
+    ----------
+    session : Session or str or Path
+    images : sequence of (H, W) or (H, W, 3) uint8, optional
+        The views' images, already read (one per view); read from the session
+        when omitted.
+    threshold : float, optional
+        The same for every view, grey levels (subtraction) or Delta E
+        (keying); automatic per view when omitted.
+    mode : {'color', 'grey'}
+    background : {'median', 'mean'}
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    list of Silhouette, one per view
+    """
+    if not isinstance(session, Session):
+        session = load_session(session)
+    model = SilhouetteModel.from_session(session, images=images, mode=mode, background=background)
+    return model.silhouettes(threshold=threshold, progress=progress, **clean)
+
+
+#: The name this function had before organlab 0.2; same function.
+session_silhouettes = silhouettes
