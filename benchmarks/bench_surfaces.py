@@ -21,17 +21,15 @@ import numpy as np
 from organlab.pipeline import reconstruct
 from organlab.surface import (
     crust,
-    distance_to_specimen,
     finish_surface,
     labelled_balls,
     mesh_from_volume,
     mesh_quality,
     poisson_surface,
-    surface_samples,
     tetrahedralize,
     vertex_normals,
 )
-from organlab.synthetic import AAAPhantom, with_true_cameras
+from organlab.synthetic import AAAPhantom, distance_to_specimen, surface_samples, with_true_cameras
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 

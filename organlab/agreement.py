@@ -28,7 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .carving import hull_field
 from .masks import as_arrays
+from .raster import model_mask
+from .surface import mesh_from_field
 
 __all__ = ["AGREEMENT_LIMIT", "ViewAgreement", "model_mask", "suggest_angles", "view_agreement"]
 
@@ -63,29 +66,6 @@ class ViewAgreement:
     worst: list
     warnings: list = field(default_factory=list)
     limit: float = AGREEMENT_LIMIT
-
-
-def model_mask(mesh, camera, shape):
-    """Pixels covered by a mesh's projection through a camera.
-
-    Parameters
-    ----------
-    mesh : organlab.surface.Mesh
-        World frame, mm.
-    camera : organlab.camera.Camera
-    shape : (2,) int
-        ``(H, W)`` of the image.
-
-    Returns
-    -------
-    (H, W) bool
-        Pixels whose centre lies inside a projected triangle.
-    """
-    from ._raster import fill_triangles
-
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # vertices on or behind the camera plane
-        uv = camera.project(np.asarray(mesh.vertices, dtype=np.float64))
-    return fill_triangles(uv, mesh.faces, shape)
 
 
 def _one_view(model, sil, tol):
@@ -203,9 +183,6 @@ def suggest_angles(table_camera, angles_deg, silhouettes, flagged, grid, *, name
         Per flagged view (by name): ``labelled``, ``best`` (degrees or None),
         ``iou_labelled``, ``iou_best``.
     """
-    from .carving import hull_field
-    from .surface import mesh_from_field
-
     n = len(silhouettes)
     if len(angles_deg) != n:
         raise ValueError(f"got {len(angles_deg)} angles for {n} silhouettes")

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Camera", "rot_z", "distort", "undistort", "nearest_rotation", "ROTATION_TOLERANCE"]
+__all__ = ["Camera", "rot_z", "distort", "undistort", "nearest_rotation", "as_points", "ROTATION_TOLERANCE"]
 
 #: Largest ``max |R R^T - I|`` accepted (and re-orthonormalised) by :func:`nearest_rotation`:
 #: published pose files print rotations to ~7 digits (|R R^T - I| about 1.5e-6).
@@ -90,7 +90,8 @@ def nearest_rotation(R, *, tolerance=ROTATION_TOLERANCE):
     return U @ Vt, err
 
 
-def _as_points(points, name="points"):
+def as_points(points, name: str = "points") -> np.ndarray:
+    """Points as ``(N, 3)`` float64 (one ``(3,)`` point becomes ``(1, 3)``); ValueError naming ``name`` otherwise."""
     p = np.asarray(points, dtype=np.float64)
     if p.ndim == 1 and p.shape[0] == 3:
         p = p[None, :]
@@ -290,7 +291,7 @@ class Camera:
         -------
         (N, 3) float64, mm, camera frame
         """
-        p = _as_points(points)
+        p = as_points(points)
         return p @ self.R.T + self.t
 
     # ------------------------------------------------------------- projection

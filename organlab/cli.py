@@ -23,8 +23,20 @@ import math
 import sys
 from pathlib import Path
 
-from ._cliparser import OneLineParser as _Parser
+from ._progress import NullProgress, ProgressBar
+from .agreement import model_mask
+from .calibration import calibrate
+from .capture import run_capture
+from .cliparser import OneLineParser as _Parser
 from .errors import OrganlabError
+from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
+from .pipeline import reconstruct, summary_table, write_outputs
+from .preflight import atomic_output_dir, check_output_dir, parse_memory
+from .scaffold import init_session
+from .session import load_session
+from .surface import mesh_result
+from .synthetic import main as synth_main
+from .viewer import CaptureViewer, SessionViewer
 
 
 def _positive_float(text):
@@ -108,8 +120,6 @@ def _init_parser(sub):
 
 
 def _init(a):
-    from .scaffold import init_session
-
     try:
         corners = tuple(int(v) for v in a.board.lower().split("x"))
         roi = None if a.roi is None else [float(v) for v in a.roi.split(",")]
@@ -183,8 +193,6 @@ def _add_view_parser(sub):
 def _view(a):
     import time
 
-    from .viewer import SessionViewer
-
     app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port)
     print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
     try:
@@ -205,8 +213,6 @@ def _mesh_parser(sub):
 
 
 def _mesh(a):
-    from .surface import mesh_result
-
     steps = a.repair or a.smooth or a.remesh is not None
     # no step named: all of them, remeshing at 1.5 voxels
     report, paths = mesh_result(
@@ -234,15 +240,10 @@ def _mesh(a):
 
 
 def _bars(quiet):
-    from ._progress import NullProgress, ProgressBar
-
     return (lambda stage: NullProgress()) if quiet else (lambda stage: ProgressBar(stage))
 
 
 def _reconstruct(a):
-    from .pipeline import reconstruct, summary_table, write_outputs
-    from .preflight import atomic_output_dir, check_output_dir, parse_memory
-
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
     rec = reconstruct(
@@ -280,9 +281,6 @@ def _reconstruct(a):
 
 
 def _pictures(rec, folder, voxel_size):
-    from .agreement import model_mask
-    from .figures import agreement_chart, agreement_overlay, mesh_snapshot
-
     ref = rec.report.get("mesh_volume_error_pct")
     title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {voxel_size:g} mm"
     title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
@@ -303,10 +301,6 @@ def _pictures(rec, folder, voxel_size):
 
 
 def _calibrate(a):
-    from .calibration import calibrate
-    from .figures import check_figures
-    from .session import load_session
-
     session = load_session(a.session)
     out = session.root if a.in_place else a.out
     if out.exists() and not out.is_dir():
@@ -330,8 +324,6 @@ def _calibrate(a):
 
 
 def _capture(a):
-    from .capture import run_capture
-
     drive = {"steps_per_rev": a.steps_per_rev, "microsteps": a.microsteps, "gear_ratio": a.gear_ratio}
     if a.turntable != "sim":
         drive.update(baudrate=a.baud, device_name=a.device_name, home_switch=a.home_switch)
@@ -369,8 +361,6 @@ def _capture_viewer(a):
     if a.no_board:
         raise OrganlabError("--view needs the board images on the table (the views' camera poses come from them); "
                             "drop --no-board or --view")
-    from .viewer import CaptureViewer
-
     viewer = CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=a.port)
     print(f"organlab capture: live view at {viewer.url}  (the hull appears with the first view)")
     return viewer
@@ -388,8 +378,6 @@ def _serve_until_interrupted(viewer):
 
 
 def _synth(argv):
-    from .synthetic import main as synth_main
-
     return synth_main(argv)
 
 

@@ -4,9 +4,10 @@
   al., CVPR 2006; e.g. ``dinoSparseRing``): images, cameras in mm, the
   object's bounding box;
 * :func:`middlebury_silhouettes` -- silhouettes by the authors' recipe for
-  their dark-background sets (threshold, dilate, erode);
-* :func:`render_silhouette` -- the silhouette of a mesh or a voxel model seen
-  by a camera, to compare a reconstruction with the photographs.
+  their dark-background sets (threshold, dilate, erode).
+
+The silhouette of a reconstruction seen by one of the set's cameras, to
+compare with the photographs, is :func:`organlab.raster.model_mask`.
 
 A Middlebury folder holds ``<name>_par.txt`` (first line: the number of
 images; then one line per image ``name.png k11 .. k33 r11 .. r33 t1 t2 t3``,
@@ -26,7 +27,7 @@ import numpy as np
 from .camera import Camera
 from .errors import OrganlabError
 
-__all__ = ["DatasetError", "MiddleburyData", "load_middlebury", "middlebury_silhouettes", "render_silhouette"]
+__all__ = ["DatasetError", "MiddleburyData", "load_middlebury", "middlebury_silhouettes"]
 
 
 class DatasetError(OrganlabError, ValueError):
@@ -207,46 +208,3 @@ def middlebury_silhouettes(images, *, threshold=0.19, dilate_px=10, erode_px=7, 
         else:
             out.append(np.clip(0.5 + (g - threshold) / soft_width, 0.0, 1.0).astype(np.float32))
     return out
-
-
-def render_silhouette(camera, *, mesh=None, occupancy=None, grid=None):
-    """Pixels whose centre sees a mesh or a voxel model: its silhouette in ``camera``.
-
-    Parameters
-    ----------
-    camera : Camera
-    mesh : organlab.surface.Mesh, optional
-        A closed mesh, mm, world frame: every triangle is projected (full
-        camera model at the vertices, straight edges between them) and
-        filled.
-    occupancy : grid.shape bool, optional
-        A voxel model (with ``grid``): the faces between occupied and empty
-        voxels (and the grid's outer faces) are projected and filled, i.e.
-        the union of the projected voxel boxes.
-    grid : VoxelGrid
-        With ``occupancy``.
-
-    Returns
-    -------
-    (H, W) bool
-    """
-    from ._raster import fill_triangles, voxel_boundary_quads
-
-    if (mesh is None) == (occupancy is None):
-        raise ValueError("give exactly one of mesh= or occupancy= (with grid=)")
-    if mesh is not None:
-        verts, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-    else:
-        if grid is None:
-            raise ValueError("occupancy= needs grid=")
-        occ = np.asarray(occupancy, dtype=bool)
-        if occ.shape != tuple(grid.shape):
-            raise ValueError(f"occupancy shape {occ.shape} does not match the grid {grid.shape}")
-        verts, faces = voxel_boundary_quads(occ, grid)
-    w, h = camera.image_size
-    if len(faces) == 0:
-        return np.zeros((h, w), dtype=bool)
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        uv, z = camera.project(verts, return_depth=True)
-    front = np.all(z[faces] > 0, axis=1)
-    return fill_triangles(uv, faces[front], (h, w))

@@ -26,6 +26,7 @@ import re
 from pathlib import Path
 
 from .errors import SessionError
+from .session import FORMAT, load_session
 
 __all__ = ["IMAGE_SUFFIXES", "init_session"]
 
@@ -113,8 +114,6 @@ def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), squar
         nothing is left written).
     """
     import math
-
-    from .session import FORMAT, load_session
 
     root = Path(folder).absolute()
     sj = root / "session.json"

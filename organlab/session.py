@@ -19,6 +19,8 @@ from .errors import SessionError
 
 __all__ = [
     "FORMAT",
+    "DEFAULT_PATTERN",
+    "DEFAULT_ROI",
     "Pattern",
     "View",
     "Session",
@@ -37,6 +39,13 @@ class Pattern:
     inner_corners: tuple
     square_size: float
     type: str = "checkerboard"
+
+
+#: The board of a new session when none is named: 9 x 6 inner corners, 20 mm squares
+#: (``organlab capture``, ``organlab init`` and the synthetic sessions start from it).
+DEFAULT_PATTERN = Pattern((9, 6), 20.0)
+#: The region of interest of a new session when none is named, mm, world frame.
+DEFAULT_ROI = {"min": [-70.0, -70.0, 0.0], "max": [70.0, 70.0, 200.0]}
 
 
 @dataclass(frozen=True)

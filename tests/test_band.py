@@ -23,7 +23,7 @@ from organlab.camera import Camera
 from organlab.carving import BandField, hull_field
 from organlab.carving._field import _as_coverage, _dense_field
 from organlab.grid import VoxelGrid
-from organlab.surface import mesh_from_volume
+from organlab.surface import mesh_from_field, mesh_from_volume
 from organlab.synthetic import Cylinder, Sphere, render_masks
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
@@ -66,7 +66,7 @@ def _compare(coverages, cameras, grid, **kw):
     assert np.array_equal(band.occupancy(), dense >= 0.5)
     assert band.n_inside() == int((dense >= 0.5).sum())
     assert np.array_equal(hull_field(coverages, cameras, grid, **kw), dense)  # the dense return still works
-    m, md = band.mesh(), mesh_from_volume(dense, grid)
+    m, md = mesh_from_field(band, grid), mesh_from_volume(dense, grid)
     assert m.is_watertight and m.volume > 0
     assert abs(len(m.faces) - len(md.faces)) <= 1e-4 * len(md.faces)
     # both ways: every vertex of one mesh has a twin in the other

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from organlab import calibio
+from organlab import calibration as calibio
 from organlab import synthetic as S
 from organlab.calibration import (
     Calibration,

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from organlab import calibio
+from organlab import calibration as calibio
 from organlab.calibration import calibrate_intrinsics, detect_board
 from organlab.session import Pattern, read_image
 

@@ -13,7 +13,7 @@ import pytest
 
 from organlab.coloring import PIPELINE_OPTIONS, color_voxels
 from organlab.coloring._statistics import _shading_fit_std, _trimmed_std
-from organlab.datasets import render_silhouette
+from organlab.raster import model_mask
 from tests._shared_data import DINO as DATA
 from tests._shared_data import needs_dino
 from tests.test_coloring import SLOT, _Boxes, _hull, _render, _ring, _smooth
@@ -34,7 +34,7 @@ def slot():
 def _unexplained(occ, hull, cams, masks, grid):
     """Silhouette pixels the hull's voxels cover but ``occ``'s do not, per view."""
     return [
-        int((m & render_silhouette(c, occupancy=hull, grid=grid) & ~render_silhouette(c, occupancy=occ, grid=grid)).sum())
+        int((m & model_mask(hull, c, grid=grid) & ~model_mask(occ, c, grid=grid)).sum())
         for c, m in zip(cams, masks)
     ]
 
@@ -184,7 +184,7 @@ def dino():
 
 
 def _mean_iou(occ, grid, cams, masks):
-    return np.mean([((r := render_silhouette(c, occupancy=occ, grid=grid)) & m).sum() / (r | m).sum() for c, m in zip(cams, masks)])
+    return np.mean([((r := model_mask(occ, c, grid=grid)) & m).sum() / (r | m).sum() for c, m in zip(cams, masks)])
 
 
 @needs_dino
@@ -251,7 +251,7 @@ def test_dino_as_a_backdrop_session(dino, tmp_path):
     assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
     # the marching-cubes surface: this measures the silhouettes (the finished, remeshed surface rounds the
     # dinosaur's thin parts)
-    renders = [render_silhouette(c, mesh=rec.raw_mesh) for c in cams]
+    renders = [model_mask(rec.raw_mesh, c) for c in cams]
     ious = [(r & m).sum() / (r | m).sum() for r, m in zip(renders, masks)]
     # like with like: the authors' silhouettes are their recipe (grey > 0.19, dilate 10 px, erode 7 px), i.e. a
     # closing and a conservative growth of 3 px beyond the outline; the same recipe applied to our hull's outline

@@ -27,7 +27,8 @@ import numpy as np
 import pytest
 
 from organlab.carving import carve_reference, hull_field
-from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes, render_silhouette
+from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes
+from organlab.raster import model_mask
 from organlab.grid import VoxelGrid
 from organlab.surface import mesh_from_volume
 
@@ -71,7 +72,7 @@ def test_load_middlebury_cameras_in_mm(dino):
         assert not cam.dist.any()
 
 
-def test_render_silhouette_of_voxels_is_the_projected_boxes():
+def test_model_mask_of_voxels_is_the_projected_boxes():
     """A voxel block renders as the convex hull of its projected corners (pixel centres inside)."""
     from scipy.spatial import Delaunay
 
@@ -87,7 +88,7 @@ def test_render_silhouette_of_voxels_is_the_projected_boxes():
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     v, u = np.mgrid[0:480, 0:640]
     inside = Delaunay(cam.project(corners)).find_simplex(np.stack([u.ravel(), v.ravel()], 1)) >= 0
-    got = render_silhouette(cam, occupancy=occ, grid=grid)
+    got = model_mask(occ, cam, grid=grid)
     assert got.sum() > 1000
     np.testing.assert_array_equal(got, inside.reshape(480, 640))
     # a mesh of the box's 12 triangles renders the same
@@ -98,7 +99,7 @@ def test_render_silhouette_of_voxels_is_the_projected_boxes():
             q = [i for i, c in enumerate(corners) if c[axis] == side]  # 4 corners, order by the other axes
             faces += [[q[0], q[1], q[3]], [q[0], q[3], q[2]]]
     assert len(idx) == 8
-    got_mesh = render_silhouette(cam, mesh=Mesh(corners, np.array(faces)))
+    got_mesh = model_mask(Mesh(corners, np.array(faces)), cam)
     np.testing.assert_array_equal(got_mesh, got)
 
 
@@ -138,8 +139,8 @@ def _compare(masks, cameras, voxel, bbox):
     field = hull_field(masks, cameras, grid)
     mesh = mesh_from_volume(field, grid)
     assert mesh.is_watertight
-    box = np.array([_iou(render_silhouette(c, occupancy=occ, grid=grid), m) for m, c in zip(masks, cameras)])
-    fld = np.array([_iou(render_silhouette(c, mesh=mesh), m) for m, c in zip(masks, cameras)])
+    box = np.array([_iou(model_mask(occ, c, grid=grid), m) for m, c in zip(masks, cameras)])
+    fld = np.array([_iou(model_mask(mesh, c), m) for m, c in zip(masks, cameras)])
     return box, fld, grid.volume_of(occ), mesh.volume
 
 

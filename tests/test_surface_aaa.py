@@ -13,15 +13,13 @@ from organlab.cli import main
 from organlab.pipeline import reconstruct, write_outputs
 from organlab.surface import (
     TETRA_FORMATS,
-    distance_to_specimen,
     mesh_quality,
     read_tetra,
-    surface_samples,
     tet_quality,
     tetrahedralize,
     write_tetra,
 )
-from organlab.synthetic import AAAPhantom, with_true_cameras
+from organlab.synthetic import AAAPhantom, distance_to_specimen, surface_samples, with_true_cameras
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 

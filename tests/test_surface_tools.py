@@ -10,7 +10,6 @@ from organlab.grid import VoxelGrid
 from organlab.surface import (
     Mesh,
     boundary_loops,
-    distance_to_specimen,
     finish_surface,
     labelled_balls,
     measure_aaa,
@@ -21,7 +20,7 @@ from organlab.surface import (
     write_obj,
     write_vtk,
 )
-from organlab.synthetic import Sphere
+from organlab.synthetic import Sphere, distance_to_specimen
 
 
 def _random_field(seed, n=20):

@@ -32,12 +32,17 @@ pattern, a fingerprint of what it was computed from) with ``save``/``load`` (``c
 and ``cameras(session)``.  :func:`calibrate` computes it; :func:`calibration_for` picks the one a
 reconstruction should use.  The check figures are drawn by :func:`organlab.figures.check_figures`.
 
+Calibrations made by other tools (Bouguet's ``Calib_Results.m``, OpenCV's YAML/XML) are read and
+written by :func:`read_bouguet`, :func:`write_bouguet`, :func:`read_opencv`, :func:`write_opencv`
+and :func:`read_camera` (either format, by its suffix).
+
 Private modules: ``_board`` (board geometry and corner detection), ``_intrinsics``,
 ``_turntable``, ``_result`` (the :class:`Calibration` type, its file form, session glue),
-``_common`` (thresholds, geometry, input checks).
+``_files`` (other tools' calibration files), ``_common`` (thresholds, geometry, input checks).
 """
 
 from ._board import board_points, detect_board
+from ._files import read_bouguet, read_camera, read_opencv, write_bouguet, write_opencv
 from ._intrinsics import IntrinsicCalibration, calibrate_intrinsics, fit_intrinsics
 from ._result import Calibration, calibrate, calibration_for, needs_calibration, session_fingerprint
 from ._turntable import TurntableCalibration, calibrate_turntable, fit_turntable
@@ -56,4 +61,9 @@ __all__ = [
     "fit_intrinsics",
     "calibrate_turntable",
     "fit_turntable",
+    "read_bouguet",
+    "write_bouguet",
+    "read_opencv",
+    "write_opencv",
+    "read_camera",
 ]

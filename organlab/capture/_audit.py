@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..calibration import board_points, detect_board
 from ._errors import CaptureError
 
 __all__ = ["board_rotation", "AngleAudit"]
@@ -42,8 +43,6 @@ def board_rotation(image, camera, pattern):
         the camera frame.
     """
     import cv2
-
-    from ..calibration import board_points, detect_board
 
     corners = detect_board(image, pattern, require_orientation=True)
     if corners is None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..session import read_image
 from ._errors import CameraError
 
 __all__ = ["CaptureCamera", "OpenCVCamera", "FolderCamera"]
@@ -148,8 +149,6 @@ class FolderCamera(CaptureCamera):
         return self._read()
 
     def _read(self):
-        from ..session import read_image
-
         if self._next >= len(self.files):
             raise CameraError(f"{self.folder}: all {len(self.files)} images replayed; the capture needs more")
         path = self.files[self._next]

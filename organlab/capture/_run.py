@@ -5,7 +5,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..camera import Camera
+from ._audit import AUDIT_LIMIT_DEG
+from ._cameras import FolderCamera, OpenCVCamera
 from ._errors import CaptureError
+from ._mdrive import MDriveTurntable
+from ._session import capture_session, console_prompt
+from ._simrig import SimRig
 
 __all__ = ["run_capture", "read_intrinsics"]
 
@@ -17,8 +23,6 @@ def read_intrinsics(path, image_size=None):
     -------
     organlab.camera.Camera
     """
-    from ..camera import Camera
-
     p = Path(path)
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
@@ -29,8 +33,6 @@ def read_intrinsics(path, image_size=None):
 
 
 def _open_camera(spec, rig, *, settle_frames, average):
-    from ._cameras import FolderCamera, OpenCVCamera
-
     if spec == "sim":
         if rig is None:
             raise CaptureError("--camera sim needs --turntable sim (the simulated camera sees the simulated table)")
@@ -88,11 +90,6 @@ def run_capture(
     -------
     Path
     """
-    from ._audit import AUDIT_LIMIT_DEG
-    from ._mdrive import MDriveTurntable
-    from ._session import capture_session, console_prompt
-    from ._simrig import SimRig
-
     camera = camera or ("sim" if turntable == "sim" else "0")
     rig = table = cam = None
     try:

@@ -27,10 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibration import calibrate_intrinsics
+from ..camera import Camera
 from ..errors import OrganlabError
-from ..session import FORMAT, Pattern
+from ..session import DEFAULT_PATTERN, DEFAULT_ROI, FORMAT, Pattern, read_image
 from ._audit import AUDIT_LIMIT_DEG, AngleAudit
 from ._errors import AngleAuditError, CameraError, CaptureError
+from ._mdrive import SerialLog
 
 __all__ = ["capture_session", "console_prompt", "stop_angles"]
 
@@ -186,16 +189,11 @@ class _Capture:
 
     def audit_camera(self):
         """Intrinsics for the audit: given ones, else calibrated from this session's hand-held board images."""
-        from ..camera import Camera
-
         if "camera" in self.doc:
             return Camera(self.doc["camera"]["K"], self.doc["camera"]["dist"], image_size=self.doc["image_size"])
         names = self.doc["calibration"]["intrinsic_images"]
         if len(names) < 3:
             return None
-        from ..calibration import calibrate_intrinsics
-        from ..session import read_image
-
         imgs = [read_image(self.root / n, grey=True) for n in names]
         try:
             return calibrate_intrinsics(imgs, self.pattern, image_size=tuple(self.doc["image_size"]), names=names).camera
@@ -211,8 +209,6 @@ class _Capture:
             return
         self.audit = AngleAudit(cam, self.pattern, limit_deg=self.limit)
         self.doc["capture"]["audit_limit_deg"] = self.limit
-        from ..session import read_image
-
         for e in self.doc["calibration"]["turntable_images"][:1]:  # the reference stop of an earlier run
             self.audit.check(read_image(self.root / e["image"]), e["angle_deg"])
 
@@ -313,7 +309,7 @@ def capture_session(
         The board (default 9 x 6 inner corners, 20 mm squares).
     roi : dict, optional
         ``{"min": [x, y, z], "max": [x, y, z]}``, mm, world frame (default
-        ``organlab.synthetic.DEFAULT_ROI``).
+        ``organlab.session.DEFAULT_ROI``).
     reference : dict, optional
         Independent measurements, e.g. ``{"volume_mm3": ...}``.
     name : str, optional
@@ -343,9 +339,6 @@ def capture_session(
         Any failure of the table, camera or audit; every image taken so far
         is on disk and listed, and ``capture.last_error`` says what happened.
     """
-    from ..synthetic import DEFAULT_PATTERN, DEFAULT_ROI
-    from ._mdrive import SerialLog
-
     root = Path(out)
     pattern = DEFAULT_PATTERN if pattern is None else (pattern if isinstance(pattern, Pattern) else Pattern(*pattern))
     say = say if say is not None else (lambda s: print(s, file=sys.stderr))

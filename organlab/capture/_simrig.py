@@ -20,7 +20,9 @@ import tty
 
 import numpy as np
 
+from ..synthetic import BOARD_MARGIN, DEFAULT_PATTERN, _render, default_camera, intrinsic_board_poses, make_specimen, turntable_board_pose
 from ._cameras import CaptureCamera
+from ._mdrive import MDriveTurntable
 
 __all__ = ["MDriveSimulator", "SimRig", "SimCamera"]
 
@@ -296,8 +298,6 @@ class SimRig:
 
     def __init__(self, *, specimen="aaa", image_size=(320, 240), supersample=2, board_supersample=None, noise_sigma=1.5, seed=0,
                  steps_per_rev=200, microsteps=256, gear_ratio=90.0, start_deg=7.3, time_scale=1.0, party_name=None):
-        from ..synthetic import DEFAULT_PATTERN, default_camera, make_specimen
-
         self.specimen = make_specimen(specimen)
         self.camera_model = default_camera(image_size)
         self.pattern = DEFAULT_PATTERN
@@ -328,8 +328,6 @@ class SimRig:
 
     def turntable(self, **kw):
         """An :class:`~organlab.capture.MDriveTurntable` on this rig's port, set up like the simulated drive."""
-        from ._mdrive import MDriveTurntable
-
         opts = dict(self.drive, home_switch=True, device_name=self.party_name, timeout=0.3, poll_interval=0.01)
         opts.update(kw)
         return MDriveTurntable(self.port, **opts)
@@ -344,8 +342,6 @@ class SimRig:
             self.scene = ("hand", int(index or 0))
 
     def hand_pose(self, k):
-        from ..synthetic import intrinsic_board_poses
-
         if k not in self._hand_poses:
             n = max(16, k + 1)
             for i, pose in enumerate(intrinsic_board_poses(self.camera_model, n, pattern=self.pattern, seed=self.seed)):
@@ -378,9 +374,6 @@ class SimCamera(CaptureCamera):
         return self.rig.camera_model.image_size
 
     def _clean(self):
-        from ..synthetic import _render
-        from ..synthetic import BOARD_MARGIN, turntable_board_pose
-
         rig = self.rig
         angle = round(rig.controller.table_angle_deg() + rig.slip_deg, 9)
         key = (rig.scene, angle)
@@ -406,8 +399,6 @@ class SimCamera(CaptureCamera):
         self._frame += 1  # a frame passes (nothing to render: it is thrown away)
 
     def _read(self):
-        from ..synthetic import _render
-
         self._frame += 1
         rng = np.random.default_rng([self.rig.seed, 99, self._frame])
         return _render.quantize(self._clean(), self.rig.noise_sigma, rng)

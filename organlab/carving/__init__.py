@@ -14,8 +14,8 @@ Public functions are re-exported from private modules:
 * :func:`carving_views` -- the first view that carves each voxel (carve by view).
 """
 
+from ..bandfield import BandField
 from ._bbox import ProgressiveCarver, carve, carve_reference
-from ._band import BandField
 from ._by_view import carving_views
 from ._field import hull_field
 

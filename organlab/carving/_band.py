@@ -29,9 +29,9 @@ voxels coarse to fine and computes the field only there:
 
 The result is the dense field's, value for value (the tests check 0
 differences); memory is a block label per ``B**3`` voxels plus the band's
-values.  :class:`BandField` holds it, gives the dense field, the occupancy,
-and the surface (:mod:`organlab.carving._bandmesh`, marching cubes on the
-band only).
+values.  :class:`organlab.bandfield.BandField` (plain data, ground floor) holds it
+and gives the dense field and the occupancy; its surface is
+:func:`organlab.surface.mesh_from_field` (marching cubes on the band only).
 """
 
 from __future__ import annotations
@@ -41,264 +41,20 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .._nbcam import N_CP, pack_camera, to_camera
+from ..bandfield import BAND, BandField
+from ..nbcam import N_CP, pack_camera, to_camera
 from ._bbox_numba import _block_uv, _rect_sum
-from ._field import _insert, _view_dmm
+from ._sample import insert_smallest, view_dmm
 
-__all__ = ["BandField"]
+__all__ = ["band_field"]
 
-OUTSIDE, INSIDE, BAND = 0, 1, 2
 _UNDECIDED = 3
 _UNSEEN = 2
 
 
-# ------------------------------------------------------------- the result
-class BandField:
-    """The hull field, stored in a narrow band around the surface.
-
-    Voxels are grouped in cubic blocks of ``block`` voxels a side.  A block is
-    ``OUTSIDE`` (every voxel -0.5), ``INSIDE`` (every voxel 1.5) or ``BAND``
-    (values stored).  Made by ``hull_field(..., sparse=True)``.
-
-    Attributes
-    ----------
-    grid : VoxelGrid
-    block : int
-        Block edge, voxels.
-    states : (bx, by, bz) int8
-        Per block: 0 outside, 1 inside, 2 band; ``bx = ceil(nx / block)``...
-    index : (bx, by, bz) int32
-        Row of each band block in ``values``, -1 for the others.
-    values : (n_band, block, block, block) float32
-        The field in the band blocks (axes x, y, z; voxels beyond the grid
-        hold -0.5).
-    """
-
-    def __init__(self, grid, block, states, index, values):
-        self.grid = grid
-        self.block = int(block)
-        self.states = states
-        self.index = index
-        self.values = values
-
-    @property
-    def shape(self):
-        return tuple(self.grid.shape)
-
-    @property
-    def dtype(self):
-        return np.dtype(np.float32)
-
-    @property
-    def n_band_voxels(self):
-        """Voxels whose value is stored (band blocks times block volume)."""
-        return int(self.values.shape[0]) * self.block**3
-
-    @property
-    def nbytes(self):
-        return int(self.states.nbytes + self.index.nbytes + self.values.nbytes)
-
-    def min(self):
-        """Smallest value of the field."""
-        lo = [float(self.values.min())] if len(self.values) else []
-        if (self.states == OUTSIDE).any():
-            lo.append(-0.5)
-        if (self.states == INSIDE).any():
-            lo.append(1.5)
-        return min(lo)
-
-    def dense(self):
-        """The dense field, ``grid.shape`` float32 (as ``hull_field`` returns)."""
-        out = np.empty(self.grid.shape, dtype=np.float32)
-        _fill_dense(out, self.states, self.index, self.values, self.block)
-        return out
-
-    def __array__(self, dtype=None, copy=None):
-        a = self.dense()
-        return a if dtype is None else a.astype(dtype)
-
-    def occupancy(self):
-        """Voxel centres inside the hull (field >= 0.5), ``grid.shape`` bool."""
-        out = np.empty(self.grid.shape, dtype=np.bool_)
-        _fill_occupancy(out, self.states, self.index, self.values, self.block)
-        return out
-
-    def n_inside(self):
-        """Number of voxel centres inside the hull (field >= 0.5)."""
-        return int(_count_inside(self.states, self.index, self.values, self.block, np.asarray(self.grid.shape)))
-
-    def mesh(self, *, chunk=32):
-        """The surface at level 0.5: the same mesh as
-        ``organlab.surface.mesh_from_volume(self.dense(), grid)``, computed on
-        the band only (see :func:`organlab.carving._bandmesh.band_mesh`).
-
-        Returns
-        -------
-        organlab.surface.Mesh
-            World frame, mm, closed, faces oriented outward.
-        """
-        from ._bandmesh import band_mesh
-
-        return band_mesh(self, chunk=chunk)
-
-    # ----------------------------------------------------------- storage
-    def to_arrays(self, *, prefix="field_"):
-        """The field as plain arrays, for ``np.savez_compressed`` (``voxels.npz``).
-
-        Only the band blocks' values are stored, so the size grows with the
-        surface, not the volume.  The band blocks' rows are put in C order of
-        their block (the order of ``states == 2``), so the index is implied.
-
-        Parameters
-        ----------
-        prefix : str
-            Prepended to the array names.
-
-        Returns
-        -------
-        dict of str -> ndarray
-            ``{prefix}block`` : () int64, block edge, voxels;
-            ``{prefix}states`` : (bx, by, bz) int8, 0 outside (every voxel
-            -0.5), 1 inside (every voxel 1.5), 2 band, with
-            ``bx = ceil(nx / block)``...;
-            ``{prefix}values`` : (n_band, block, block, block) float32, the
-            band blocks' values in C order of their block (axes x, y, z;
-            voxels beyond the grid hold -0.5).
-        """
-        band = self.states == BAND
-        rows = self.index[band]
-        values = self.values
-        if not np.array_equal(rows, np.arange(len(rows))):
-            values = values[rows]
-        return {
-            f"{prefix}block": np.int64(self.block),
-            f"{prefix}states": np.ascontiguousarray(self.states, dtype=np.int8),
-            f"{prefix}values": np.ascontiguousarray(values, dtype=np.float32),
-        }
-
-    @classmethod
-    def from_arrays(cls, arrays, grid, *, prefix="field_", source="voxels.npz"):
-        """The field back from :meth:`to_arrays`' arrays, checked.
-
-        Parameters
-        ----------
-        arrays : mapping of str -> ndarray
-            Holds ``{prefix}block``, ``{prefix}states``, ``{prefix}values``
-            (an ``np.load`` result works).
-        grid : VoxelGrid
-            The grid the field samples (its shape fixes the states' shape).
-        prefix : str
-        source : str or Path
-            Named in the errors (the file read).
-
-        Returns
-        -------
-        BandField
-
-        Raises
-        ------
-        OrganlabError
-            One line naming ``source`` and the array, when an array is
-            missing, or its shape, dtype or content does not fit the others.
-        """
-        from ..errors import OrganlabError
-
-        def bad(name, why):
-            return OrganlabError(f"{source}: {prefix}{name}: {why}; rewrite it with 'organlab reconstruct'")
-
-        got = {}
-        for name in ("block", "states", "values"):
-            try:
-                got[name] = np.asarray(arrays[prefix + name])
-            except KeyError:
-                raise bad(name, "missing") from None
-        block, states, values = got["block"], got["states"], got["values"]
-        if block.shape != () or block.dtype.kind not in "iu" or not 1 <= int(block) <= 1024:
-            raise bad("block", f"{block.dtype} {block.shape}, expected one integer from 1 to 1024")
-        B = int(block)
-        nb = tuple(-(-int(n) // B) for n in grid.shape)
-        if states.dtype != np.int8 or states.shape != nb:
-            raise bad("states", f"{states.dtype} {states.shape}, expected int8 {nb} (grid {tuple(grid.shape)} "
-                                f"in blocks of {B})")
-        if states.size and (states.min() < OUTSIDE or states.max() > BAND):
-            raise bad("states", "values other than 0 (outside), 1 (inside), 2 (band)")
-        band = states == BAND
-        n = int(band.sum())
-        if values.dtype != np.float32 or values.shape != (n, B, B, B):
-            raise bad("values", f"{values.dtype} {values.shape}, expected float32 {(n, B, B, B)} "
-                                f"(one block per band block of {prefix}states)")
-        if n and not (values.min() >= -0.5 and values.max() <= 1.5):  # NaN fails too
-            raise bad("values", "outside the field's range [-0.5, 1.5]")
-        index = np.full(nb, -1, dtype=np.int32)
-        index[band] = np.arange(n, dtype=np.int32)
-        return cls(grid, B, np.ascontiguousarray(states), index, np.ascontiguousarray(values))
-
-    def __repr__(self):
-        return (
-            f"BandField(shape={self.shape}, block={self.block}, band_blocks={len(self.values)}, "
-            f"{self.nbytes / 1e6:.1f} MB)"
-        )
-
-
-# --------------------------------------------------------- dense views
-@njit(cache=True, parallel=True)
-def _fill_dense(out, states, index, values, B):
-    nx, ny, nz = out.shape
-    for bx in prange(states.shape[0]):
-        for by in range(states.shape[1]):
-            for bz in range(states.shape[2]):
-                s = states[bx, by, bz]
-                q = index[bx, by, bz]
-                for i in range(bx * B, min(bx * B + B, nx)):
-                    for j in range(by * B, min(by * B + B, ny)):
-                        for k in range(bz * B, min(bz * B + B, nz)):
-                            if s == 2:
-                                out[i, j, k] = values[q, i - bx * B, j - by * B, k - bz * B]
-                            elif s == 1:
-                                out[i, j, k] = 1.5
-                            else:
-                                out[i, j, k] = -0.5
-
-
-@njit(cache=True, parallel=True)
-def _fill_occupancy(out, states, index, values, B):
-    nx, ny, nz = out.shape
-    for bx in prange(states.shape[0]):
-        for by in range(states.shape[1]):
-            for bz in range(states.shape[2]):
-                s = states[bx, by, bz]
-                q = index[bx, by, bz]
-                for i in range(bx * B, min(bx * B + B, nx)):
-                    for j in range(by * B, min(by * B + B, ny)):
-                        for k in range(bz * B, min(bz * B + B, nz)):
-                            if s == 2:
-                                out[i, j, k] = values[q, i - bx * B, j - by * B, k - bz * B] >= 0.5
-                            else:
-                                out[i, j, k] = s == 1
-
-
-@njit(cache=True)
-def _count_inside(states, index, values, B, shape):
-    nx, ny, nz = shape[0], shape[1], shape[2]
-    n = 0
-    for bx in range(states.shape[0]):
-        for by in range(states.shape[1]):
-            for bz in range(states.shape[2]):
-                s = states[bx, by, bz]
-                if s == 0:
-                    continue
-                q = index[bx, by, bz]
-                for i in range(bx * B, min(bx * B + B, nx)):
-                    for j in range(by * B, min(by * B + B, ny)):
-                        for k in range(bz * B, min(bz * B + B, nz)):
-                            if s == 1 or values[q, i - bx * B, j - by * B, k - bz * B] >= 0.5:
-                                n += 1
-    return n
-
-
 # ------------------------------------------------- per-view preparation
 def _sqrt_det(cp, xn, yn):
-    """``sqrt(det J)`` of the projection at normalized coordinates (as ``_view_dmm``), vectorized."""
+    """``sqrt(det J)`` of the projection at normalized coordinates (as ``view_dmm``), vectorized."""
     k1, k2, p1, p2, k3 = cp[17:22]
     r2 = xn * xn + yn * yn
     rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -478,10 +234,10 @@ def _band_values(blocks, B, active, nout, nseen, sdfs, whs, cps, origin, vs, sha
                         if best[kk - 1] <= -lim:
                             break
                         v = views[(a + first) % m]
-                        ok, dmm = _view_dmm(sdfs[v], whs[v, 1], whs[v, 0], cps[v], x, y, z, lim)
+                        ok, dmm = view_dmm(sdfs[v], whs[v, 1], whs[v, 0], cps[v], x, y, z, lim)
                         if ok:
                             seen += 1
-                            _insert(best, dmm)
+                            insert_smallest(best, dmm)
                             if dmm <= -lim:
                                 carver = (a + first) % m
                     first = carver

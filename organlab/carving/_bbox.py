@@ -34,10 +34,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._nbcam import pack_camera
 from ..camera import Camera
 from ..grid import VoxelGrid
 from ..masks import Silhouette
+from ..nbcam import pack_camera
+from . import _bbox_numba as nbk
 
 __all__ = ["carve", "carve_reference", "ProgressiveCarver"]
 
@@ -237,8 +238,6 @@ class _Engine:
     """Per-voxel carve counts plus a pyramid of alive counts, updated view by view."""
 
     def __init__(self, grid, tolerance, min_pixels, levels=4):
-        from . import _bbox_numba as nbk
-
         self._nbk = nbk
         self.grid = grid
         self.tol = tolerance

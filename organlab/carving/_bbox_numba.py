@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .._nbcam import to_camera, to_pixel
+from ..nbcam import to_camera, to_pixel
 
 
 @njit(cache=True)

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..raster import model_mask
+
 #: Automatic threshold: median + AUTO_K robust standard deviations of the hull surface's measure.
 AUTO_K = 6.0
 #: ... and at least NOISE_K times the pixel noise.
@@ -110,8 +112,6 @@ def guard(occ, candidates, cameras, grid, masks):
 
     Returns the new occupancy and the number of voxels put back.
     """
-    from ..datasets import render_silhouette
-
     carved = candidates & ~occ
     if not carved.any():
         return occ, 0
@@ -123,7 +123,7 @@ def guard(occ, candidates, cameras, grid, masks):
     restore = np.zeros(len(ijk), bool)
     for cam, m in zip(cameras, masks):
         m = np.asarray(m, bool)
-        lost = m & render_silhouette(cam, occupancy=candidates, grid=grid) & ~render_silhouette(cam, occupancy=occ, grid=grid)
+        lost = m & model_mask(candidates, cam, grid=grid) & ~model_mask(occ, cam, grid=grid)
         if not lost.any():
             continue
         H, W = lost.shape

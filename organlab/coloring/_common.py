@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._nbcam import pack_cameras
 from ..camera import Camera
 from ..errors import OrganlabError
 from ..grid import VoxelGrid
+from ..nbcam import pack_cameras
 
 #: Default photo-consistency threshold, grey levels (standard deviation).
 DEFAULT_THRESHOLD = 18.0

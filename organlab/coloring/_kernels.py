@@ -1,6 +1,6 @@
 """numba kernels of :mod:`organlab.coloring`: footprints, item buffers, pixel statistics.
 
-A camera is packed by organlab._nbcam.pack_camera: R (9, row major), t (3),
+A camera is packed by organlab.nbcam.pack_camera: R (9, row major), t (3),
 fx, K[0, 1], cx, fy, cy, k1, k2, p1, p2, k3, |t|_1.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .._nbcam import to_camera, to_pixel
+from ..nbcam import to_camera, to_pixel
 
 
 @nb.njit(cache=True, nogil=True)

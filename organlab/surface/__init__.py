@@ -10,19 +10,18 @@ Public names are re-exported from private modules by topic:
 - :mod:`._voronoi`: crust reconstruction from points, screened Poisson;
 - :mod:`._aaa`: centreline and aneurysm measurements;
 - :mod:`._tetra`: tetrahedral meshes (gmsh) and their files (meshio);
-- :mod:`._truth`: distance to a synthetic specimen's exact surface;
-- :mod:`._result`: the ``organlab mesh`` steps on a result folder, the AAA picture.
+- :mod:`._result`: the ``organlab mesh`` steps on a result folder;
+- :mod:`._picture`: off-screen pictures of a mesh and of the AAA measures.
 """
 
 from ._aaa import AAAMeasures, measure_aaa
 from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
 from ._mesh import MC_METHODS, Mesh, color_vertices, measure, mesh_from_field, mesh_from_volume
+from ._picture import aaa_picture, mesh_snapshot
 from ._quality import boundary_loops, mesh_quality
-from ..figures import aaa_picture  # drawn with the other pictures; re-exported here beside measure_aaa
-from ._result import is_aaa_session, load_voxels, mesh_result
 from ._repair import finish_surface, remesh_mesh, repair_mesh, smooth_mesh
+from ._result import is_aaa_session, load_voxels, mesh_result
 from ._tetra import TETRA_FORMATS, TetMesh, read_tetra, tet_quality, tetrahedralize, write_tetra
-from ._truth import distance_to_specimen, surface_samples
 from ._voronoi import crust, labelled_balls, poisson_surface, poles, vertex_normals
 
 __all__ = [
@@ -44,8 +43,6 @@ __all__ = [
     "repair_mesh",
     "smooth_mesh",
     "remesh_mesh",
-    "distance_to_specimen",
-    "surface_samples",
     "measure_aaa",
     "AAAMeasures",
     "tetrahedralize",
@@ -63,4 +60,5 @@ __all__ = [
     "load_voxels",
     "is_aaa_session",
     "aaa_picture",
+    "mesh_snapshot",
 ]

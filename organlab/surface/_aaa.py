@@ -17,6 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from ..carving import BandField
+from ..errors import OrganlabError
+from ._sampling import FieldSampler
 
 
 @dataclass(frozen=True)
@@ -200,10 +203,6 @@ def measure_aaa(
     -------
     AAAMeasures
     """
-    from ..carving import BandField
-    from ..errors import OrganlabError
-    from ._sampling import FieldSampler
-
     vs = float(grid.voxel_size)
     cval = min(0.0, level - 1)
     if isinstance(volume, BandField):
@@ -266,8 +265,6 @@ def _band_box(field, level):
 
 def _measures(c, arc, sections, inside, origin, vs, sac_factor, params):
     """The diameters, neck and sac from the sections (see :func:`measure_aaa`)."""
-    from ..errors import OrganlabError
-
     feret = np.array([s[1] for s in sections])
     eq = np.array([s[2] for s in sections])
     if np.all(np.isnan(feret)):

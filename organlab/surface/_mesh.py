@@ -11,72 +11,14 @@ outward, and degenerate faces are not produced.  ``method='classic'`` and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from ..bandfield import BandField
+from ..mesh import Mesh
+from ._bandmesh import band_mesh
+from ._classic_mc import classic_marching_cubes
+
 __all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vertices"]
-
-
-@dataclass(frozen=True, eq=False)
-class Mesh:
-    """A triangle mesh in the world frame.
-
-    Attributes
-    ----------
-    vertices : (V, 3) float64, mm, world frame
-    faces : (F, 3) int64
-        Vertex indices, counter-clockwise seen from outside (normals out).
-    vertex_colors : (V, 3) uint8 RGB, optional
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    vertex_colors: np.ndarray | None = None
-
-    @property
-    def volume(self):
-        """Enclosed volume, mm^3 (signed sum of tetrahedra; > 0 when oriented outward)."""
-        v = self.vertices
-        a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
-        # centre the coordinates for numerical accuracy
-        o = v.mean(axis=0) if len(v) else np.zeros(3)
-        return float(np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)).sum() / 6.0)
-
-    @property
-    def area(self):
-        """Surface area, mm^2."""
-        v = self.vertices
-        a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
-        return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2.0)
-
-    def edge_counts(self):
-        """Directed-edge bookkeeping: ``(n_boundary, n_nonmanifold, n_misoriented)`` edges."""
-        f = self.faces
-        if len(f) == 0:
-            return 0, 0, 0
-        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        und = np.sort(e, axis=1)
-        key = und[:, 0].astype(np.int64) * (int(f.max()) + 1) + und[:, 1]
-        _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
-        boundary = int((counts == 1).sum())
-        nonmanifold = int((counts > 2).sum())
-        # in an oriented closed surface each undirected edge is used once in each direction
-        forward = (e[:, 0] < e[:, 1]).astype(np.int64)
-        fwd_per_edge = np.bincount(inv, weights=forward, minlength=len(counts))
-        misoriented = int(((counts == 2) & (fwd_per_edge != 1)).sum())
-        return boundary, nonmanifold, misoriented
-
-    @property
-    def is_watertight(self):
-        """Closed, edge-manifold and consistently oriented: every edge is shared by
-        exactly two faces that traverse it in opposite directions."""
-        return len(self.faces) > 0 and self.edge_counts() == (0, 0, 0)
-
-    @property
-    def bounds(self):
-        """``(min, max)`` of the vertices, mm, each ``(3,)``."""
-        return self.vertices.min(axis=0), self.vertices.max(axis=0)
 
 
 MC_METHODS = ("lewiner", "decider", "classic")
@@ -123,8 +65,6 @@ def mesh_from_volume(volume, grid, *, level=0.5, method="lewiner"):
             padded, level=level, spacing=(s, s, s), method="lewiner", allow_degenerate=False
         )
     else:
-        from ._classic_mc import classic_marching_cubes
-
         verts, faces = classic_marching_cubes(padded, level, decider=method == "decider")
         verts = verts * s
     verts = verts.astype(np.float64) + (np.asarray(grid.origin) - s)
@@ -154,10 +94,8 @@ def mesh_from_field(field, grid):
     Mesh
         World frame, mm, faces oriented outward.
     """
-    from ..carving import BandField
-
     if isinstance(field, BandField):
-        return field.mesh()
+        return band_mesh(field)
     return mesh_from_volume(field, grid, level=0.5)
 
 

@@ -15,8 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import OrganlabError
+from ._folds import fold_edges
 from ._mesh import Mesh
-from ._quality import boundary_loops, mesh_quality
+from ._quality import boundary_loops, mesh_quality, triangle_angles
+from ._voronoi import vertex_normals
 
 
 def _to_ms(mesh):
@@ -184,8 +187,6 @@ def _restore_volume(mesh, volume):
     ``(volume - V) / area`` (hundredths of a mm) gives the volume back
     without changing the triangles' shapes.
     """
-    from ._voronoi import vertex_normals
-
     out = mesh
     for _ in range(3):
         gap = volume - out.volume
@@ -197,8 +198,6 @@ def _restore_volume(mesh, volume):
 
 def _clear_folds(mesh, radius_mm, *, speck_mm, fold_deg=90.0, max_rounds=3):
     """Cut out and fill the spots where neighbouring faces are more than ``fold_deg`` apart (see :mod:`._folds`)."""
-    from ._folds import cut_and_fill, fold_edges
-
     out, found, removed = mesh, [], 0
     for _ in range(max_rounds):
         fe = fold_edges(out, fold_deg)
@@ -214,9 +213,6 @@ def _clear_folds(mesh, radius_mm, *, speck_mm, fold_deg=90.0, max_rounds=3):
 
 def _clear_slivers(mesh, target_mm, *, speck_mm, feature_deg, min_angle, max_rounds=3):
     """Cut out and fill the faces below ``min_angle`` left by remeshing, then remesh once more."""
-    from ._folds import cut_and_fill
-    from ._quality import triangle_angles
-
     best, best_angle = mesh, mesh_quality(mesh)["min_angle_deg"]
     out, rounds = mesh, 0
     while best_angle < min_angle and rounds < max_rounds:
@@ -250,8 +246,6 @@ def _remesh_step(mesh, target_mm, voxel_size, feature_deg, min_angle, keep_volum
 
 
 def _check_mesh(mesh):
-    from ..errors import OrganlabError
-
     if not isinstance(mesh, Mesh):
         raise TypeError(f"expected an organlab.surface.Mesh, got {type(mesh).__name__}")
     if len(mesh.faces) == 0:
@@ -342,3 +336,55 @@ def finish_surface(
         _, idx = cKDTree(mesh.vertices).query(out.vertices)
         out = Mesh(out.vertices, out.faces, np.asarray(mesh.vertex_colors)[idx])
     return out, report
+
+
+# ------------------------------------------------------- folds: cut and fill (see ._folds)
+def _laplace(vertices, faces, movable, iterations):
+    """Uniform Laplacian smoothing of the ``movable`` vertices; the others stay."""
+    from scipy.sparse import coo_matrix, diags
+
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    nv = len(vertices)
+    a = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(nv, nv)).tocsr()
+    a = ((a + a.T) > 0).astype(np.float64)
+    w = diags(1.0 / np.maximum(np.asarray(a.sum(axis=1)).ravel(), 1.0)) @ a
+    v = vertices.copy()
+    for _ in range(int(iterations)):
+        v[movable] = (w @ v)[movable]
+    return v
+
+
+def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
+    """Remove the faces near ``seeds``, close the holes, relax the patches.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Closed, manifold; world frame, mm.
+    seeds : (S, 3) float64, mm, world frame
+    radius_mm : float, mm
+        Faces with a vertex closer than this to a seed are removed.
+    speck_mm : float, mm
+        See :func:`repair_mesh` (pieces the cut isolates are dropped).
+    iterations : int
+        Laplacian steps of the vertices within 1.5 ``radius_mm`` of a seed.
+
+    Returns
+    -------
+    Mesh
+        The clean-up, or ``mesh`` itself when the result would not be closed
+        and manifold.
+    int
+        Faces removed (0 when ``mesh`` is returned).
+    """
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(seeds)
+    d, _ = tree.query(mesh.vertices)
+    keep = ~(d < radius_mm)[mesh.faces].any(axis=1)
+    rep, _ = repair_mesh(Mesh(mesh.vertices, mesh.faces[keep]), speck_mm=speck_mm)
+    q = mesh_quality(rep)
+    if q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]:
+        return mesh, 0
+    d, _ = tree.query(rep.vertices)
+    return Mesh(_laplace(rep.vertices, rep.faces, d < 1.5 * radius_mm, iterations), rep.faces), int((~keep).sum())

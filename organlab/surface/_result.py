@@ -12,7 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ..carving import BandField
+from ..errors import OrganlabError
+from ..grid import VoxelGrid
+from ..session import write_json
+from ._aaa import measure_aaa
+from ._io import write_obj, write_ply, write_stl, write_vtk
 from ._mesh import mesh_from_volume
+from ._picture import aaa_picture
+from ._repair import finish_surface
+from ._tetra import TETRA_FORMATS, tetrahedralize, write_tetra
 
 
 def is_aaa_session(session):
@@ -63,10 +72,6 @@ def load_voxels(result_dir):
     """
     import zipfile
     import zlib
-
-    from ..carving import BandField
-    from ..errors import OrganlabError
-    from ..grid import VoxelGrid
 
     path = Path(result_dir) / "voxels.npz"
     if not path.is_file():
@@ -119,10 +124,6 @@ def mesh_result(result_dir, *, repair=True, smooth=True, remesh="auto", tetra=Fa
     report : dict
     paths : dict of str -> Path
     """
-    from ..session import write_json
-    from ._io import write_obj, write_ply, write_stl, write_vtk
-    from ._repair import finish_surface
-
     vol, grid = load_voxels(result_dir)
     out = Path(result_dir) / "surface"
     out.mkdir(parents=True, exist_ok=True)
@@ -133,22 +134,16 @@ def mesh_result(result_dir, *, repair=True, smooth=True, remesh="auto", tetra=Fa
         paths[name] = out / f"mesh.{name}"
         writer(paths[name], mesh)
     if tetra:
-        from ._tetra import TETRA_FORMATS, tetrahedralize, write_tetra
-
         tm, report["tetra"] = tetrahedralize(mesh)
         for ext in TETRA_FORMATS:
             paths[f"tetra_{ext}"] = write_tetra(out / f"tetra.{ext}", tm)
     if measure:
-        from ._aaa import measure_aaa
-
         m = measure_aaa(vol, grid)
         report["aaa"] = m.summary()
         paths["aaa"] = out / "aaa.json"
         write_json(paths["aaa"], {**m.summary(), "centreline_mm": m.centreline.tolist(),
                                   "feret_mm": m.feret_mm.tolist(), "equivalent_mm": m.equivalent_mm.tolist()})
         if picture:
-            from ..figures import aaa_picture
-
             paths["aaa_picture"] = aaa_picture(mesh, m, out / "aaa_measures.png")
     paths["report"] = out / "surface_report.json"
     write_json(paths["report"], report)

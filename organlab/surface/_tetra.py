@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from ..errors import OrganlabError
 
 TETRA_FORMATS = {"vtu": "vtu", "msh": "gmsh", "inp": "abaqus", "xdmf": "xdmf"}
 
@@ -98,8 +99,6 @@ def tetrahedralize(mesh, *, size_mm=None, optimize=True):
     import time
 
     import gmsh
-
-    from ..errors import OrganlabError
 
     if not mesh.is_watertight:
         raise OrganlabError("tetrahedralize needs a closed, manifold surface: run finish_surface (--repair) first")

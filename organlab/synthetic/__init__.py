@@ -24,7 +24,8 @@ folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
 
 Private modules: ``_boards`` (camera, board poses and images), ``_specimens``,
 ``_render`` (ray casting, shading), ``_hard`` (the hard lamp), ``_views``
-(views and silhouettes), ``_session`` (the session folder), ``_cli``.
+(views and silhouettes), ``_session`` (the session folder), ``_truth``
+(distance to a specimen's exact surface, to score a mesh), ``_cli``.
 """
 
 __all__ = [
@@ -53,6 +54,8 @@ __all__ = [
     "BOARD_CENTER_XY",
     "BOARD_MARGIN",
     "main",
+    "distance_to_specimen",
+    "surface_samples",
 ]
 
 from ._boards import (
@@ -80,4 +83,5 @@ from ._specimens import (
     striped_albedo,
     tissue_albedo,
 )
+from ._truth import distance_to_specimen, surface_samples
 from ._views import render_masks, render_view

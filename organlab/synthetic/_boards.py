@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import Camera, rot_z
-from ..session import Pattern
+from ..session import DEFAULT_PATTERN, Pattern
 from . import _render
 
-DEFAULT_PATTERN = Pattern((9, 6), 20.0)
 #: White margin around the squares of the synthetic board, mm.
 BOARD_MARGIN = 15.0
 #: Centre of the board (x, y), mm, as it lies on the table at angle 0.

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..cliparser import OneLineParser
+from ..session import load_session
 from ._session import make_session
 
 
 def main(argv=None):
     """``python -m organlab.synthetic OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force]``."""
     import time
-
-    from .._cliparser import OneLineParser
 
     ap = OneLineParser(prog="organlab synth", description="Write a synthetic organlab session folder.")
     ap.add_argument("out", help="session folder to write")
@@ -60,8 +60,6 @@ def main(argv=None):
     )
     if args.preview:
         import cv2
-
-        from ..session import load_session
 
         s = load_session(out, check_images=False)
         img = s.read(s.views[0].image)

@@ -7,13 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..session import FORMAT, write_json
+from ..session import DEFAULT_PATTERN, DEFAULT_ROI, FORMAT, write_json
 from . import _hard, _render
-from ._boards import BOARD_MARGIN, DEFAULT_PATTERN, default_camera, intrinsic_board_poses, render_board, turntable_board_pose
+from ._boards import BOARD_MARGIN, default_camera, intrinsic_board_poses, render_board, turntable_board_pose
 from ._specimens import make_specimen
-
-DEFAULT_ROI = {"min": [-70.0, -70.0, 0.0], "max": [70.0, 70.0, 200.0]}
-
 
 def _write_image(path, image, *, fmt="png", quality=95, chroma="444"):
     """Write a PNG, or a JPEG with full (``'444'``) or 2 x 2 subsampled (``'420'``, most cameras) chroma."""

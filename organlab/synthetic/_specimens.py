@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import _as_points
+from ..camera import as_points
 
 from . import _render
 
@@ -74,7 +74,7 @@ class Specimen:
 
     def inside(self, points):
         """Membership test: ``(N,)`` bool for ``points (N, 3)`` mm, world frame (boundary counts as inside)."""
-        p = _as_points(points)
+        p = as_points(points)
         return self._inside(p)
 
     def albedo(self, points):
@@ -96,8 +96,8 @@ class Specimen:
         normals : (N, 3) float64
             Outward unit normals at the hits (zeros for misses).
         """
-        o = _as_points(origins, "origins")
-        d = _as_points(directions, "directions")
+        o = as_points(origins, "origins")
+        d = as_points(directions, "directions")
         if o.shape != d.shape:
             o = np.broadcast_to(o, d.shape)
         return self._intersect(o, d, t_max=None)

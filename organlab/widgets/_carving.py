@@ -98,7 +98,7 @@ class CarvingTuner:
     def run(self):
         """Carve with the current parameters; returns (and keeps) ``result``."""
         from ..carving import hull_field
-        from ..datasets import render_silhouette
+        from ..raster import model_mask
         from ..grid import VoxelGrid
         from ..surface import mesh_from_volume
 
@@ -119,7 +119,7 @@ class CarvingTuner:
         mesh = mesh_from_volume(surface_of, grid, level=0.5)
         agreement = []
         for s, cam in zip(self.silhouettes, self.cameras):
-            model = render_silhouette(cam, mesh=mesh)
+            model = model_mask(mesh, cam)
             union = np.count_nonzero(model | s.mask)
             agreement.append(np.count_nonzero(model & s.mask) / union if union else 1.0)
         ref = self.reference_volume

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .errors import CalibrationError
+from ..camera import Camera
+from ..errors import CalibrationError
 
 __all__ = [
     "read_bouguet",

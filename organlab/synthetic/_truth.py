@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _render
+from ._specimens import Cylinder, Sphere, _ClippedCylinder, _StarSolid
+
 
 def _star_samples(star, h):
-    from ..synthetic import _render
-
     z = np.arange(star.z_lo, star.z_hi + h / 2, h)
     z[-1] = min(z[-1], star.z_hi)
     n_phi = int(np.ceil(2 * np.pi * star.r_max / h))
@@ -80,9 +81,6 @@ def surface_samples(specimen, *, spacing=0.25):
     -------
     points, normals : (N, 3) float64, mm, world frame; unit normals
     """
-    from ..synthetic import Cylinder, Sphere
-    from ..synthetic._specimens import _ClippedCylinder, _StarSolid
-
     if isinstance(specimen, Sphere):
         n = int(4 * np.pi * specimen.radius**2 / spacing**2)
         k = np.arange(n) + 0.5
@@ -127,8 +125,6 @@ def distance_to_specimen(points, specimen, *, spacing=0.25, samples=None):
         Positive outside the solid, negative inside.
     """
     from scipy.spatial import cKDTree
-
-    from ..synthetic import Sphere
 
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if isinstance(specimen, Sphere):

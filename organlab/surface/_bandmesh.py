@@ -1,4 +1,4 @@
-"""Marching cubes on the band of a :class:`~organlab.carving._band.BandField` only.
+"""Marching cubes on the band of a :class:`~organlab.bandfield.BandField` only.
 
 The surface of ``mesh_from_volume(field, grid)`` (the field padded by one
 sample of ``min(0, field.min())`` on every side, Lewiner marching cubes at
@@ -26,7 +26,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._band import INSIDE
+from ..bandfield import INSIDE
+from ..mesh import Mesh
 
 __all__ = ["band_mesh"]
 
@@ -118,8 +119,6 @@ def band_mesh(field, *, chunk=32, level=0.5):
         If nothing is above ``level`` (an empty model).
     """
     from skimage.measure import marching_cubes
-
-    from ..surface import Mesh
 
     grid = field.grid
     shape = np.asarray(grid.shape, dtype=np.int64)

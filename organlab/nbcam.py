@@ -1,4 +1,4 @@
-"""Private numba kernels: :meth:`organlab.camera.Camera.project` for one point.
+"""Numba kernels of the camera model (ground floor): :meth:`organlab.camera.Camera.project` for one point.
 
 The voxel kernels (:mod:`organlab.carving`, :mod:`organlab.coloring`) project
 millions of points one at a time inside numba loops; they share the camera
