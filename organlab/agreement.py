@@ -108,6 +108,20 @@ def view_agreement(mesh, cameras, silhouettes, *, voxel_size, names=None, limit=
     Returns
     -------
     ViewAgreement
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> from organlab.agreement import view_agreement
+    >>> cal, _ = ol.calibration_for(s)
+    >>> cameras, grid, sils = cal.cameras(s), ol.VoxelGrid.from_session(s, voxel_size=4.0), ol.silhouettes(s)
+    >>> mesh = ol.mesh_from_field(ol.hull_field(sils, cameras, grid, sparse=True), grid)
+    >>> a = view_agreement(mesh, cameras, sils, voxel_size=4.0)
+    >>> all(v["ok"] for v in a.views), a.warnings, round(float(min(v["iou"] for v in a.views)), 2)
+    (True, [], 0.98)
     """
     if len(cameras) != len(silhouettes):
         raise ValueError(f"got {len(cameras)} cameras for {len(silhouettes)} silhouettes")

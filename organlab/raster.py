@@ -141,6 +141,7 @@ def model_mask(model: Any, camera: Camera, shape: tuple[int, int] | None = None,
     >>> import numpy as np
     >>> from organlab.camera import Camera
     >>> from organlab.grid import VoxelGrid
+    >>> from organlab.raster import model_mask
     >>> cam = Camera(np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), np.zeros(5),
     ...              np.eye(3), np.array([0.0, 0.0, 100.0]), image_size=(64, 48))
     >>> grid = VoxelGrid(origin=(-5.0, -5.0, -5.0), voxel_size=1.0, shape=(10, 10, 10))

@@ -3,7 +3,9 @@
 ``../shared/data`` beside the repository; ``ORGANLAB_SHARED_DATA`` overrides it (e.g. from a git worktree).
 """
 
+import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -13,3 +15,19 @@ import organlab
 SHARED_DATA = Path(os.environ.get("ORGANLAB_SHARED_DATA", Path(organlab.__file__).resolve().parents[2] / "shared" / "data"))
 DINO = SHARED_DATA / "dinoSparseRing"
 needs_dino = pytest.mark.skipif(not (DINO / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DINO}")
+
+#: The repository, and the bundled sample session (a synthetic AAA phantom, 36 views; read it, never write into it).
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "sample_sessions" / "aaa_phantom"
+
+
+def copy_sample(root, *, calibration=False, views=None):
+    """A writable copy of the sample at ``root``: without its calibration (``calibration.json``,
+    ``calibration_check/``) unless ``calibration``; only every ``views``-th view when given."""
+    ignore = None if calibration else shutil.ignore_patterns("calibration.json", "calibration_check")
+    shutil.copytree(SAMPLE, root, ignore=ignore)
+    if views:
+        doc = json.loads((root / "session.json").read_text())
+        doc["views"] = doc["views"][::views]
+        (root / "session.json").write_text(json.dumps(doc, indent=2))
+    return root

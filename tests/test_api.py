@@ -16,8 +16,8 @@ import organlab as ol
 from organlab.cli import main
 from organlab.errors import CalibrationError
 from organlab.surface import read_ply
+from tests._shared_data import SAMPLE, copy_sample  # noqa: F401 (SAMPLE: for the tests other branches add)
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 pytestmark = pytest.mark.slow
 
 
@@ -40,7 +40,7 @@ def _writable(root):
 def sample(tmp_path_factory):
     """A read-only copy of the sample session, without calibration.json, and its calibration."""
     root = tmp_path_factory.mktemp("api") / "aaa"
-    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("calibration.json", "calibration_check"))
+    copy_sample(root)
     _read_only(root)
     yield root, ol.calibrate(root)
     _writable(root)

@@ -25,8 +25,7 @@ from organlab.carving._field import _as_coverage, _dense_field
 from organlab.grid import VoxelGrid
 from organlab.surface import mesh_from_field, mesh_from_volume
 from organlab.synthetic import Cylinder, Sphere, render_masks
-
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+from tests._shared_data import SAMPLE
 
 
 def _look_at(centre, target, roll_deg):

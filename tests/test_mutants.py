@@ -5,8 +5,6 @@ into the code and to pass without it.
 """
 
 import json
-import shutil
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,16 +16,15 @@ from organlab.camera import Camera
 from organlab.carving import carve, carve_reference, hull_field
 from organlab.errors import SessionError
 from organlab.grid import VoxelGrid
-
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+from tests._shared_data import SAMPLE, copy_sample  # noqa: F401 (SAMPLE: for the tests other branches add)
 
 
 # ------------------------------------------- numba bounding box: rounding margin
 def _edge_cases(n, seed=0):
     """Rotated cameras under which a voxel corner lies exactly on a pixel edge by
     ``Camera.project`` (as carve_reference projects it) and a rounding error to the
-    right of it by the numba projection (the kernels' ``_nbcam``)."""
-    from organlab._nbcam import pack_camera, to_camera, to_pixel
+    right of it by the numba projection (the kernels' ``nbcam``)."""
+    from organlab.nbcam import pack_camera, to_camera, to_pixel
     from organlab.carving._bbox import _corner_axes
 
     @njit
@@ -193,7 +190,7 @@ def test_a_missing_image_is_named_at_load(key, remove, tmp_path):
     """Bug caught: a view's ``mask`` no longer checked at load (nor a missing turntable
     or intrinsic image): the run failed much later, or silently used fewer images."""
     root = tmp_path / "s"
-    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("calibration.json", "calibration_check"))
+    copy_sample(root)
     doc = json.loads((root / "session.json").read_text())
     if remove == "mask":
         doc["views"][3]["mask"] = "masks/030.png"  # named, never written

@@ -3,7 +3,6 @@ images, then the reconstruction, against the phantom's exact volume."""
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,8 +10,8 @@ import pytest
 from organlab import load_session
 from organlab.pipeline import reconstruct, write_outputs
 from organlab.synthetic import with_true_cameras
+from tests._shared_data import SAMPLE
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 SPEC_REPORT_KEYS = {"volume_mm3", "mesh_volume_mm3", "mesh_area_mm2", "watertight", "voxel_size_mm", "timings_s", "views", "camera"}
 
 pytestmark = pytest.mark.slow

@@ -7,8 +7,6 @@ The box-cropped clean-up and coverage are checked against the same steps on the
 whole image.
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -23,8 +21,8 @@ from organlab.silhouette import (
     silhouette,
 )
 from organlab.silhouette._subtract import _coverage_in, _disk, _fill_holes, _keep_components
+from tests._shared_data import SAMPLE
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 H, W = 120, 160
 
 
@@ -36,10 +34,8 @@ def _same(a, b):
 
 
 @pytest.mark.slow
-def test_rethreshold_on_the_sample_equals_fresh_runs():
-    from organlab import load_session
-
-    session = load_session(SAMPLE)
+def test_rethreshold_on_the_sample_equals_fresh_runs(sample_session):
+    session = sample_session
     images = [session.read(v.image, key="x") for v in session.views]
     model = SilhouetteModel.from_session(session, images=images)
     _same(model.silhouettes(), session_silhouettes(session, images=images))

@@ -2,7 +2,6 @@
 session at 1 mm, against the AAA phantom's exact geometry (organlab.synthetic)."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,8 +19,8 @@ from organlab.surface import (
     write_tetra,
 )
 from organlab.synthetic import AAAPhantom, distance_to_specimen, surface_samples, with_true_cameras
+from tests._shared_data import SAMPLE
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 
 pytestmark = pytest.mark.slow
 

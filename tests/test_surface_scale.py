@@ -9,6 +9,7 @@ from organlab.carving import BandField
 from organlab.grid import VoxelGrid
 from organlab.surface import measure_aaa
 from organlab.surface._sampling import FieldSampler
+from tests._shared_data import SAMPLE
 
 
 def _band(dense, grid, block=8):
@@ -93,13 +94,12 @@ def test_a_coarser_centreline_grid_keeps_the_measures():
 def test_pixel_footprint_sets_the_remesh_edge_floor():
     """reconstruct passes its cameras' pixel size at the specimen to finish_surface (sample: ~0.69 mm)."""
     import json
-    from pathlib import Path
 
     from organlab.camera import Camera
     from organlab.grid import VoxelGrid
     from organlab.pipeline import pixel_footprint
 
-    root = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+    root = SAMPLE
     t = json.loads((root / "truth.json").read_text())
     c = t["camera"]
     cams = [Camera(c["K"], c["dist"], v["R"], v["t"], tuple(c["image_size"])) for v in t["views"]]

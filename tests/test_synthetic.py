@@ -9,6 +9,7 @@ import pytest
 import organlab
 from organlab import synthetic as syn
 from organlab.camera import rot_z
+from tests._shared_data import SAMPLE
 
 
 @pytest.fixture(scope="module")
@@ -351,9 +352,8 @@ def test_session_options_are_checked(tmp_path):
 
 
 def test_committed_sample_session_is_valid_and_small():
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+    root = SAMPLE
     if not (root / "session.json").is_file():
         pytest.skip("sample session not generated (make sample)")
     s = organlab.load_session(root)  # opens every image

@@ -19,15 +19,14 @@ from organlab.cli import main
 from organlab.errors import OrganlabError, SessionError
 from organlab.pipeline import reconstruct, write_outputs
 from organlab.preflight import bytes_per_voxel, check_grid_memory, check_output_dir, parse_memory
-
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+from tests._shared_data import SAMPLE, copy_sample
 
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     """A copy of the sample session with its calibration.json (computed once)."""
     root = tmp_path_factory.mktemp("trust") / "sample"
-    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("calibration.json", "calibration_check"))
+    copy_sample(root)
     from organlab.calibration import calibrate
 
     calibrate(load_session(root)).save(root / "calibration.json")

@@ -14,7 +14,6 @@ file's).
 """
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,8 +24,7 @@ from organlab.errors import OrganlabError
 from organlab.grid import VoxelGrid
 from organlab.pipeline import reconstruct, write_outputs
 from organlab.surface import load_voxels, mesh_from_volume
-
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+from tests._shared_data import SAMPLE
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ its controls must drive it as a person's would.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,15 +22,14 @@ from organlab.session import load_session
 from organlab.silhouette import Silhouette, silhouette, silhouettes
 from organlab.surface import mesh_from_volume
 from organlab.widgets import CalibrationChecker, CarvingTuner, ThresholdPicker
+from tests._shared_data import SAMPLE
 
 pytest.importorskip("ipywidgets")
 
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
-
 
 @pytest.fixture(scope="module")
-def session():
-    return load_session(SAMPLE)
+def session(sample_session):
+    return sample_session
 
 
 @pytest.fixture(scope="module")

@@ -292,6 +292,16 @@ def calibrate(session, *, progress=None):
     Raises
     ------
     CalibrationError
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> cal = ol.calibrate(s)  # the session gives the intrinsics: the turntable is fitted on its 10 board images
+    >>> cal.intrinsics is None, f"{cal.turntable.rms_px:.2f} px", cal.turntable.flagged
+    (True, '0.04 px', [])
     """
     session = _as_session(session)
     where = session.json_path
@@ -362,6 +372,16 @@ def calibration_for(session, *, calibration=None, recalibrate=False, progress=No
     how : str
         ``'computed'``, ``'given'``, ``'session.json'``, ``'reused'`` or
         ``'recomputed: <why the saved one was not used>'``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> cal, how = ol.calibration_for(s)  # session.json gives the camera and every pose: nothing to fit
+    >>> how, len(cal.cameras(s))
+    ('session.json', 6)
     """
     session = _as_session(session)
     if calibration is not None:

@@ -379,6 +379,18 @@ def carve(masks, cameras, grid, *, tolerance=0, min_pixels=1):
         ``tolerance`` / ``min_pixels`` is not a valid integer.
     TypeError
         If a camera is not a :class:`Camera` or grid not a :class:`VoxelGrid`.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> cal, _ = ol.calibration_for(s)
+    >>> grid = ol.VoxelGrid.from_session(s, voxel_size=4.0)
+    >>> occupancy = ol.carve([sil.mask for sil in ol.silhouettes(s)], cal.cameras(s), grid)
+    >>> occupancy.shape, occupancy.dtype, int(occupancy.sum())  # every voxel any part of which the views keep
+    ((35, 35, 50), dtype('bool'), 4011)
     """
     _check_grid(grid)
     masks, cameras = _check_views(masks, cameras)

@@ -423,6 +423,20 @@ def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress
     view, 12 with the tables) plus a byte and an index per block of 4^3
     voxels and the band's values; time and memory grow with the surface's
     area, not the grid's volume (``benchmarks/bench_stages.py``).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> cal, _ = ol.calibration_for(s)
+    >>> grid = ol.VoxelGrid.from_session(s, voxel_size=4.0)
+    >>> field = ol.hull_field(ol.silhouettes(s), cal.cameras(s), grid, sparse=True)
+    >>> field
+    BandField(shape=(35, 35, 50), block=4, band_blocks=167, 0.0 MB)
+    >>> field.n_inside() * grid.voxel_size**3  # mm^3 (the phantom: 165 661 mm^3; 6 views leave the hull larger)
+    176256.0
     """
     _check_grid(grid)
     if isinstance(silhouettes, np.ndarray) and silhouettes.ndim == 2:

@@ -121,6 +121,21 @@ def color_voxels(
     TypeError
         A camera that is not a :class:`~organlab.camera.Camera` or a grid that
         is not a :class:`~organlab.grid.VoxelGrid`.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> cal, _ = ol.calibration_for(s)
+    >>> cameras, grid, sils = cal.cameras(s), ol.VoxelGrid.from_session(s, voxel_size=4.0), ol.silhouettes(s)
+    >>> hull = ol.carve([sil.mask for sil in sils], cameras, grid)
+    >>> r = ol.color_voxels([s.read(v.image) for v in s.views], cameras, hull, grid, masks=[sil.mask for sil in sils])
+    >>> int(hull.sum()), int(r.occupancy.sum()), r.n_carved  # colouring only removes voxels
+    (4011, ..., ...)
+    >>> bool(r.occupancy.sum() <= hull.sum()) and not (r.occupancy & ~hull).any()
+    True
     """
     t0 = time.perf_counter()
     stack, cameras, cams, bg = _check_inputs(images, cameras, grid, masks)

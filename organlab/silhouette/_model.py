@@ -340,6 +340,18 @@ def silhouettes(
     Returns
     -------
     list of Silhouette, one per view
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import organlab as ol
+    >>> from organlab.synthetic import with_true_cameras
+    >>> s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tempfile.mkdtemp() + "/aaa", step=6))
+    >>> sils = ol.silhouettes(s)  # background subtraction, Li's threshold per view
+    >>> len(sils), sils[0].mask.shape, sils[0].source, round(sils[0].threshold, 1)
+    (6, (480, 640), 'subtraction', 17.5)
+    >>> [int(sil.mask.sum()) for sil in sils]  # specimen pixels per view
+    [11330, 10954, 11178, 11361, 11035, 11216]
     """
     if not isinstance(session, Session):
         session = load_session(session)

@@ -202,6 +202,18 @@ def measure_aaa(
     Returns
     -------
     AAAMeasures
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import organlab as ol
+    >>> from organlab.surface import measure_aaa
+    >>> grid = ol.VoxelGrid(origin=(-20.0, -20.0, 0.0), voxel_size=2.0, shape=(21, 21, 60))
+    >>> x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    >>> r = 8.0 + 10.0 * np.exp(-(((z - 60.0) / 15.0) ** 2))  # a tube of 16 mm, swollen to 36 mm at z = 60 mm
+    >>> m = measure_aaa(x**2 + y**2 <= r**2, grid).summary()
+    >>> round(m["max_equivalent_diameter_mm"], 1), round(m["max_location_mm"][2]), round(m["neck_diameter_mm"], 1)
+    (35.9, 60, 15.7)
     """
     vs = float(grid.voxel_size)
     cval = min(0.0, level - 1)

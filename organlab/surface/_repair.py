@@ -303,6 +303,17 @@ def finish_surface(
     dict
         ``steps`` (what each step changed), ``raw`` and ``final`` quality
         (:func:`mesh_quality`), ``watertight``, ``volume_change_pct``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import organlab as ol
+    >>> grid = ol.VoxelGrid(origin=(-24.0, -24.0, -24.0), voxel_size=2.0, shape=(25, 25, 25))
+    >>> x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    >>> ball = x**2 + y**2 + z**2 <= 20.0**2  # a sphere of radius 20 mm: 33 510 mm^3
+    >>> mesh, steps = ol.finish_surface(ol.mesh_from_field(ball, grid), voxel_size=2.0)
+    >>> mesh.is_watertight, steps["watertight"], round(mesh.volume)  # the raw mesh's volume is kept
+    (True, True, 33297)
     """
     if not (isinstance(voxel_size, (int, float)) and voxel_size > 0):
         raise ValueError(f"voxel_size must be a positive number of mm, got {voxel_size!r}")

@@ -298,7 +298,7 @@ def _truth(cam, spec, views_truth, pattern, poses_in, *, seed, noise_sigma, supe
     }
 
 
-def with_true_cameras(session_dir, dest):
+def with_true_cameras(session_dir: str | Path, dest: str | Path, *, step: int = 1) -> Path:
     """Copy a synthetic session, giving the true camera and view poses in ``session.json``.
 
     The copy skips any calibration (``calibration.json``, check figures): it
@@ -311,12 +311,17 @@ def with_true_cameras(session_dir, dest):
         A session written by :func:`make_session` (has ``truth.json``).
     dest : str or Path
         The new session folder (must not exist).
+    step : int
+        Keep every ``step``-th view (1: all; 6 on the 36-view sample: 6 views
+        60 degrees apart, for quick examples and tests).
 
     Returns
     -------
     Path
         ``dest``.
     """
+    if int(step) != step or step < 1:
+        raise ValueError(f"step must be an integer >= 1, got {step!r}")
     import shutil
 
     src, dest = Path(session_dir), Path(dest)
@@ -328,5 +333,6 @@ def with_true_cameras(session_dir, dest):
     doc["camera"] = {"K": truth["camera"]["K"], "dist": truth["camera"]["dist"]}
     for view, true_view in zip(doc["views"], truth["views"]):
         view["pose"] = {"R": true_view["R"], "t": true_view["t"]}
+    doc["views"] = doc["views"][:: int(step)]
     write_json(dest / "session.json", doc)
     return dest
