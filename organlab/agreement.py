@@ -24,12 +24,16 @@ and the mislabelled view (1.9x above).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .camera import Camera
 from .carving import hull_field
-from .masks import as_arrays
+from .grid import VoxelGrid
+from .masks import Silhouette, as_arrays
+from .mesh import Mesh
 from .raster import model_mask
 from .surface import mesh_from_field
 
@@ -86,7 +90,9 @@ def _one_view(model, sil, tol):
     }
 
 
-def view_agreement(mesh, cameras, silhouettes, *, voxel_size, names=None, limit=AGREEMENT_LIMIT):
+def view_agreement(mesh: Mesh, cameras: Sequence[Camera], silhouettes: Sequence[Silhouette | np.ndarray], *,
+                   voxel_size: float, names: Sequence[str] | None = None,
+                   limit: float = AGREEMENT_LIMIT) -> ViewAgreement:
     """How well a model's projection matches every view's silhouette.
 
     Parameters
@@ -161,8 +167,9 @@ def _warnings(views, names, limit):
     return [f"{head}; {cause}"]
 
 
-def suggest_angles(table_camera, angles_deg, silhouettes, flagged, grid, *, names=None, search_deg=20.0,
-                   step_deg=0.5, gain=0.005):
+def suggest_angles(table_camera: Camera, angles_deg: Sequence[float], silhouettes: Sequence[Silhouette | np.ndarray],
+                   flagged: Sequence[int], grid: VoxelGrid, *, names: Sequence[str] | None = None,
+                   search_deg: float = 20.0, step_deg: float = 0.5, gain: float = 0.005) -> list[dict]:
     """For views flagged by :func:`view_agreement`: the table angle at which each agrees best.
 
     A wrong angle label is the first likely cause of a flagged view.  The

@@ -10,6 +10,9 @@ it) need not import each other.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from pathlib import Path
+
 import numpy as np
 from numba import njit, prange
 
@@ -43,7 +46,7 @@ class BandField:
         hold -0.5).
     """
 
-    def __init__(self, grid, block, states, index, values):
+    def __init__(self, grid: VoxelGrid, block: int, states: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
         self.grid = grid
         self.block = int(block)
         self.states = states
@@ -51,23 +54,23 @@ class BandField:
         self.values = values
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, int, int]:
         return tuple(self.grid.shape)
 
     @property
-    def dtype(self):
+    def dtype(self) -> np.dtype:
         return np.dtype(np.float32)
 
     @property
-    def n_band_voxels(self):
+    def n_band_voxels(self) -> int:
         """Voxels whose value is stored (band blocks times block volume)."""
         return int(self.values.shape[0]) * self.block**3
 
     @property
-    def nbytes(self):
+    def nbytes(self) -> int:
         return int(self.states.nbytes + self.index.nbytes + self.values.nbytes)
 
-    def min(self):
+    def min(self) -> float:
         """Smallest value of the field."""
         lo = [float(self.values.min())] if len(self.values) else []
         if (self.states == OUTSIDE).any():
@@ -76,28 +79,28 @@ class BandField:
             lo.append(1.5)
         return min(lo)
 
-    def dense(self):
+    def dense(self) -> np.ndarray:
         """The dense field, ``grid.shape`` float32 (as ``hull_field`` returns)."""
         out = np.empty(self.grid.shape, dtype=np.float32)
         _fill_dense(out, self.states, self.index, self.values, self.block)
         return out
 
-    def __array__(self, dtype=None, copy=None):
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
         a = self.dense()
         return a if dtype is None else a.astype(dtype)
 
-    def occupancy(self):
+    def occupancy(self) -> np.ndarray:
         """Voxel centres inside the hull (field >= 0.5), ``grid.shape`` bool."""
         out = np.empty(self.grid.shape, dtype=np.bool_)
         _fill_occupancy(out, self.states, self.index, self.values, self.block)
         return out
 
-    def n_inside(self):
+    def n_inside(self) -> int:
         """Number of voxel centres inside the hull (field >= 0.5)."""
         return int(_count_inside(self.states, self.index, self.values, self.block, np.asarray(self.grid.shape)))
 
     # ----------------------------------------------------------- storage
-    def to_arrays(self, *, prefix="field_"):
+    def to_arrays(self, *, prefix: str = "field_") -> dict[str, np.ndarray]:
         """The field as plain arrays, for ``np.savez_compressed`` (``voxels.npz``).
 
         Only the band blocks' values are stored, so the size grows with the
@@ -132,7 +135,8 @@ class BandField:
         }
 
     @classmethod
-    def from_arrays(cls, arrays, grid, *, prefix="field_", source="voxels.npz"):
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], grid: VoxelGrid, *, prefix: str = "field_",
+                    source: str | Path = "voxels.npz") -> BandField:
         """The field back from :meth:`to_arrays`' arrays, checked.
 
         Parameters
@@ -186,7 +190,7 @@ class BandField:
         index[band] = np.arange(n, dtype=np.int32)
         return cls(grid, B, np.ascontiguousarray(states), index, np.ascontiguousarray(values))
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (
             f"BandField(shape={self.shape}, block={self.block}, band_blocks={len(self.values)}, "
             f"{self.nbytes / 1e6:.1f} MB)"

@@ -228,31 +228,31 @@ class Camera:
 
     # ------------------------------------------------------------------ props
     @property
-    def width(self):
+    def width(self) -> int:
         return self.image_size[0]
 
     @property
-    def height(self):
+    def height(self) -> int:
         return self.image_size[1]
 
     @property
-    def skew(self):
+    def skew(self) -> float:
         """``alpha_c``: the skew coefficient (``K[0, 1] / K[0, 0]``)."""
         return self.K[0, 1] / self.K[0, 0]
 
     @property
-    def center(self):
+    def center(self) -> np.ndarray:
         """Camera centre in the world frame, mm, ``(3,)``."""
         return -self.R.T @ self.t
 
     @property
-    def rvec(self):
+    def rvec(self) -> np.ndarray:
         """Rodrigues vector of ``R`` (as OpenCV's ``rvec``)."""
         import cv2
 
         return cv2.Rodrigues(self.R)[0].ravel()
 
-    def pixel_footprint(self, point):
+    def pixel_footprint(self, point: np.ndarray) -> float:
         """Size of one pixel at a world point, mm: its depth over the mean focal length.
 
         Parameters
@@ -267,11 +267,11 @@ class Camera:
         return z / (0.5 * (self.K[0, 0] + self.K[1, 1])) if z > 0 else float("inf")
 
     # ------------------------------------------------------------- transforms
-    def with_pose(self, R, t):
+    def with_pose(self, R: np.ndarray, t: np.ndarray) -> Camera:
         """Same intrinsics, new world-to-camera pose."""
         return Camera(self.K, self.dist, R, t, self.image_size)
 
-    def at_table_angle(self, angle_deg):
+    def at_table_angle(self, angle_deg: float) -> Camera:
         """The camera seeing the turntable rotated by ``angle_deg``.
 
         ``self`` is the camera at table angle 0 (``R_cam``, ``t_cam``); a point
@@ -280,7 +280,7 @@ class Camera:
         """
         return self.with_pose(self.R @ rot_z(angle_deg), self.t)
 
-    def world_to_camera(self, points):
+    def world_to_camera(self, points: np.ndarray) -> np.ndarray:
         """Map world points to the camera frame.
 
         Parameters
@@ -295,7 +295,7 @@ class Camera:
         return p @ self.R.T + self.t
 
     # ------------------------------------------------------------- projection
-    def project(self, points, *, return_depth=False):
+    def project(self, points: np.ndarray, *, return_depth: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Project world points to pixels through the full camera model.
 
         Parameters
@@ -328,7 +328,7 @@ class Camera:
         v = K[1, 1] * xd[:, 1] + K[1, 2]
         return np.stack([u, v], axis=1), z
 
-    def pixels_to_normalized(self, pixels):
+    def pixels_to_normalized(self, pixels: np.ndarray) -> np.ndarray:
         """Undistorted normalized coordinates ``(X/Z, Y/Z)`` of pixels.
 
         Parameters
@@ -345,7 +345,7 @@ class Camera:
         xd = (px[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
         return undistort(np.stack([xd, yd], axis=1), self.dist)
 
-    def rays(self, pixels):
+    def rays(self, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Back-project pixels to rays in the world frame.
 
         Parameters
@@ -366,17 +366,17 @@ class Camera:
         return origins, d
 
     # -------------------------------------------------------------- serialise
-    def intrinsics_dict(self):
+    def intrinsics_dict(self) -> dict:
         return {"K": self.K.tolist(), "dist": self.dist.tolist(), "image_size": list(self.image_size)}
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         """JSON-ready dict: ``K``, ``dist``, ``R``, ``t``, ``image_size``."""
         d = self.intrinsics_dict()
         d.update(R=self.R.tolist(), t=self.t.tolist())
         return d
 
     @classmethod
-    def from_dict(cls, d, *, image_size=None):
+    def from_dict(cls, d: dict, *, image_size: tuple[int, int] | None = None) -> Camera:
         """Build from a dict with ``K``, ``dist`` and optional ``R``, ``t``, ``image_size``."""
         size = d.get("image_size", image_size)
         if size is None:

@@ -23,7 +23,7 @@ import math
 import sys
 from pathlib import Path
 
-from ._progress import NullProgress, ProgressBar
+from .progress import NullProgress, ProgressBar
 from .agreement import model_mask
 from .calibration import calibrate
 from .capture import run_capture
@@ -35,6 +35,7 @@ from .preflight import atomic_output_dir, check_output_dir, parse_memory
 from .scaffold import init_session
 from .session import load_session
 from .surface import mesh_result
+from .synthetic import SimRig
 from .synthetic import main as synth_main
 from .viewer import CaptureViewer, SessionViewer
 
@@ -340,7 +341,7 @@ def _capture(a):
             a.out, turntable=a.turntable, camera=a.camera, step_deg=a.step, n_background=a.background,
             n_intrinsic=a.intrinsics, board=not a.no_board, intrinsics_file=a.camera_file, drive=drive,
             audit_limit_deg=a.audit_limit, stop_on_flag=not a.no_stop_on_flag, settle_frames=a.settle,
-            average=a.average, sim_options=dict(sim, image_size=(w, h)), progress=bar,
+            average=a.average, rig=SimRig(**sim, image_size=(w, h)) if a.turntable == "sim" else None, progress=bar,
             on_view=None if viewer is None else viewer.on_view,
         )
         bar.close()

@@ -213,7 +213,7 @@ def agreement_overlay(image, silhouette, model, path, *, title=None):
     image : (H, W) or (H, W, 3) uint8
     silhouette : (H, W) bool
     model : (H, W) bool
-        Pixels covered by the model's projection (organlab.agreement.model_mask).
+        Pixels covered by the model's projection (organlab.raster.model_mask).
     path : str or Path
         PNG to write: red = silhouette the model does not explain, blue = model
         outside the silhouette, green = both.

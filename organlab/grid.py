@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # for the annotations only (a session module is not needed to use a grid)
+    from .session import Session
 
 __all__ = ["VoxelGrid"]
 
@@ -41,7 +45,7 @@ class VoxelGrid:
         object.__setattr__(self, "voxel_size", float(self.voxel_size))
 
     @classmethod
-    def from_roi(cls, roi_min, roi_max, voxel_size):
+    def from_roi(cls, roi_min: np.ndarray, roi_max: np.ndarray, voxel_size: float) -> VoxelGrid:
         """Grid of voxels filling the box ``[roi_min, roi_max]``.
 
         The first voxel's lower faces lie on ``roi_min``; the grid covers the
@@ -63,7 +67,7 @@ class VoxelGrid:
         return cls(tuple(lo + voxel_size / 2), voxel_size, tuple(shape))
 
     @classmethod
-    def from_session(cls, session, voxel_size=1.0):
+    def from_session(cls, session: Session, voxel_size: float = 1.0) -> VoxelGrid:
         """Grid filling the session's region of interest (``roi`` in ``session.json``).
 
         Parameters
@@ -74,21 +78,21 @@ class VoxelGrid:
         return cls.from_roi(session.roi_min, session.roi_max, voxel_size)
 
     @property
-    def n_voxels(self):
+    def n_voxels(self) -> int:
         return int(np.prod(self.shape))
 
     @property
-    def bounds(self):
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(min, max)`` corners of the whole grid, mm, each ``(3,)``."""
         o = np.asarray(self.origin)
         lo = o - self.voxel_size / 2
         return lo, lo + np.asarray(self.shape) * self.voxel_size
 
-    def axes(self):
+    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Voxel-centre coordinates along x, y and z: three 1-D arrays, mm."""
         return tuple(self.origin[i] + self.voxel_size * np.arange(self.shape[i]) for i in range(3))
 
-    def centers(self, index=None):
+    def centers(self, index: np.ndarray | None = None) -> np.ndarray:
         """World coordinates of voxel centres.
 
         Parameters
@@ -104,6 +108,6 @@ class VoxelGrid:
             index = np.indices(self.shape).reshape(3, -1).T
         return np.asarray(self.origin) + np.asarray(index, dtype=np.float64) * self.voxel_size
 
-    def volume_of(self, occupancy):
+    def volume_of(self, occupancy: np.ndarray) -> float:
         """Volume of the occupied voxels, mm^3."""
         return float(np.count_nonzero(occupancy)) * self.voxel_size**3

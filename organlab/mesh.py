@@ -32,7 +32,7 @@ class Mesh:
     vertex_colors: np.ndarray | None = None
 
     @property
-    def volume(self):
+    def volume(self) -> float:
         """Enclosed volume, mm^3 (signed sum of tetrahedra; > 0 when oriented outward)."""
         v = self.vertices
         a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
@@ -41,13 +41,13 @@ class Mesh:
         return float(np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)).sum() / 6.0)
 
     @property
-    def area(self):
+    def area(self) -> float:
         """Surface area, mm^2."""
         v = self.vertices
         a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
         return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2.0)
 
-    def edge_counts(self):
+    def edge_counts(self) -> tuple[int, int, int]:
         """Directed-edge bookkeeping: ``(n_boundary, n_nonmanifold, n_misoriented)`` edges."""
         f = self.faces
         if len(f) == 0:
@@ -65,12 +65,12 @@ class Mesh:
         return boundary, nonmanifold, misoriented
 
     @property
-    def is_watertight(self):
+    def is_watertight(self) -> bool:
         """Closed, edge-manifold and consistently oriented: every edge is shared by
         exactly two faces that traverse it in opposite directions."""
         return len(self.faces) > 0 and self.edge_counts() == (0, 0, 0)
 
     @property
-    def bounds(self):
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(min, max)`` of the vertices, mm, each ``(3,)``."""
         return self.vertices.min(axis=0), self.vertices.max(axis=0)

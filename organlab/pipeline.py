@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from ._progress import NullProgress
+from .progress import NullProgress
 from .errors import SessionError
 from .grid import VoxelGrid
 from .session import Session, load_session, write_json

@@ -92,25 +92,25 @@ class Session:
     notes: tuple = ()  # of str: what loading corrected (e.g. a re-orthonormalised rotation)
 
     @property
-    def json_path(self):
+    def json_path(self) -> Path:
         return self.root / "session.json"
 
     @property
-    def calibration_path(self):
+    def calibration_path(self) -> Path:
         return self.root / "calibration.json"
 
-    def relpath(self, path):
+    def relpath(self, path: str | Path) -> str:
         """Path relative to the session folder, with ``/``, for messages and reports."""
         try:
             return Path(path).relative_to(self.root).as_posix()
         except ValueError:
             return str(path)
 
-    def read(self, path, *, key="image", grey=False):
+    def read(self, path: str | Path, *, key: str = "image", grey: bool = False) -> np.ndarray:
         """Read one of the session's images, checking it exists and has the session's size."""
         return read_image(path, size=self.image_size, key=key, grey=grey, session=self)
 
-    def images(self, *, grey=False):
+    def images(self, *, grey: bool = False) -> list[np.ndarray]:
         """The views' images, read and checked, in view order.
 
         Returns
@@ -119,7 +119,7 @@ class Session:
         """
         return [self.read(v.image, key=f"views[{i}].image", grey=grey) for i, v in enumerate(self.views)]
 
-    def given_camera(self):
+    def given_camera(self) -> Camera | None:
         """The intrinsics given in ``session.json`` as a :class:`Camera`, or None."""
         if self.camera is None:
             return None
@@ -202,7 +202,7 @@ def _image_list(raw, key, root, where):
     return tuple(root / s for s in items)
 
 
-def load_session(path, *, check_images=True):
+def load_session(path: str | Path, *, check_images: bool = True) -> Session:
     """Load and validate a session folder.
 
     Parameters

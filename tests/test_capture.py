@@ -12,18 +12,16 @@ from organlab.capture import (
     DisconnectedError,
     FolderCamera,
     GarbledReplyError,
-    MDriveSimulator,
     MDriveTurntable,
     NoReplyError,
     OpenCVCamera,
     PositionError,
-    SimCamera,
-    SimRig,
     StallError,
     capture_session,
 )
 from organlab.cli import main
 from organlab.session import load_session
+from organlab.synthetic import MDriveSimulator, SimCamera, SimRig
 
 DRIVE = {"steps_per_rev": 200, "microsteps": 256, "gear_ratio": 90.0}
 STEPS_PER_DEG = 200 * 256 * 90 / 360.0

@@ -60,17 +60,18 @@ def test_capture_command_line_view(tmp_path, capsys, monkeypatch):
 def test_continued_capture_shows_the_earlier_views(tmp_path):
     """A capture that died after 2 views, continued with the viewer: all 6 views and their hull."""
     from organlab.capture import StallError, run_capture
+    from organlab.synthetic import SimRig
     from organlab.viewer import CaptureViewer
 
     root = tmp_path / "s"
-    opts = dict(step_deg=60.0, n_background=2, sim_options={"image_size": (320, 240), "time_scale": 20.0},
-                say=lambda s: None)
+    opts = dict(step_deg=60.0, n_background=2, say=lambda s: None)
     # the 3rd move of the views pass (1 homing + 6 board moves + 2 view moves before it)
     with pytest.raises(StallError):
-        run_capture(root, sim_faults=[{"kind": "stall", "on": "MA", "after": 8}], **opts)
+        run_capture(root, rig=SimRig(image_size=(320, 240), time_scale=20.0),
+                    sim_faults=[{"kind": "stall", "on": "MA", "after": 8}], **opts)
     notes = []
     with CaptureViewer(root, port=0, say=notes.append) as viewer:
-        run_capture(root, on_view=viewer.on_view, **opts)
+        run_capture(root, rig=SimRig(image_size=(320, 240), time_scale=20.0), on_view=viewer.on_view, **opts)
         assert not notes
         _check_scene(viewer, root)
 
@@ -79,12 +80,13 @@ def test_viewer_without_poses_says_so_once_and_the_capture_completes(tmp_path):
     import json
 
     from organlab.capture import run_capture
+    from organlab.synthetic import SimRig
     from organlab.viewer import CaptureViewer
 
     notes = []
     with CaptureViewer(tmp_path / "s", port=0, say=notes.append) as viewer:
         run_capture(tmp_path / "s", step_deg=90.0, n_background=2, board=False, on_view=viewer.on_view,
-                    sim_options={"image_size": (320, 240), "time_scale": 20.0}, say=lambda s: None)
+                    rig=SimRig(image_size=(320, 240), time_scale=20.0), say=lambda s: None)
         assert len(notes) == 1 and "live view off" in notes[0] and "no turntable calibration" in notes[0]
         assert viewer.live.cameras == []
     assert json.loads((tmp_path / "s" / "session.json").read_text())["capture"]["complete"]

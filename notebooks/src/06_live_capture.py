@@ -46,8 +46,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import organlab as ol
-from organlab.capture import SimRig, capture_session
+from organlab.capture import capture_session
 from organlab.silhouette import background_model, background_noise, silhouette
+from organlab.synthetic import SimRig
 
 scratch = tempfile.TemporaryDirectory(prefix="organlab_nb06_")  # removed when the kernel stops
 root = Path(scratch.name) / "captured"

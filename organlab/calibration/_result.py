@@ -13,6 +13,7 @@ import hashlib
 import json
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,16 +63,16 @@ class Calibration:
 
     # ------------------------------------------------------------ reading
     @property
-    def rms_px(self):
+    def rms_px(self) -> float | None:
         """Intrinsic reprojection RMS, px (None when the intrinsics were given)."""
         return None if self.intrinsics is None else self.intrinsics.rms_px
 
     @property
-    def turntable_rms_px(self):
+    def turntable_rms_px(self) -> float | None:
         """Turntable joint-fit RMS, px (None without a turntable fit)."""
         return None if self.turntable is None else self.turntable.rms_px
 
-    def cameras(self, session):
+    def cameras(self, session: Session | str | Path) -> list[Camera]:
         """The camera of every view of ``session``.
 
         A view's pose is its given ``pose`` when ``session.json`` has one, otherwise the
@@ -104,7 +105,7 @@ class Calibration:
                 )
         return cams
 
-    def mismatch(self, session):
+    def mismatch(self, session: Session | str | Path) -> list[str]:
         """Why this calibration does not belong to ``session`` (empty when it does).
 
         Compared: the image size; and, when the session has board images, the pattern, the
@@ -132,7 +133,7 @@ class Calibration:
         return why
 
     # ------------------------------------------------------------ file form
-    def to_dict(self):
+    def to_dict(self) -> dict:
         """JSON-ready: the content of ``calibration.json`` (``docs/session-format.md``)."""
         out = {"format": FORMAT}
         if self.pattern is not None:
@@ -148,7 +149,8 @@ class Calibration:
         return out
 
     @classmethod
-    def from_dict(cls, d, *, image_size=None, where="calibration.json"):
+    def from_dict(cls, d: dict, *, image_size: tuple[int, int] | None = None,
+                  where: str | Path = "calibration.json") -> Calibration:
         """Build from the content of a ``calibration.json``, checking it.
 
         Parameters
@@ -166,7 +168,7 @@ class Calibration:
         """
         return _from_dict(cls, d, image_size, str(where))
 
-    def save(self, path):
+    def save(self, path: str | Path) -> Path:
         """Write ``calibration.json`` atomically (a temporary file, then renamed).
 
         Returns
@@ -184,7 +186,7 @@ class Calibration:
         return path
 
     @classmethod
-    def load(cls, path, *, image_size=None):
+    def load(cls, path: str | Path, *, image_size: tuple[int, int] | None = None) -> Calibration:
         """Read and check a ``calibration.json``.
 
         Raises
@@ -203,7 +205,7 @@ class Calibration:
             raise CalibrationError(f"{path}: invalid JSON ({e}); recalibrate (organlab calibrate)") from None
         return cls.from_dict(d, image_size=image_size, where=path)
 
-    def warnings(self):
+    def warnings(self) -> list[str]:
         """What a user must know before trusting this calibration, one line each (list of str).
 
         Turntable images set aside (their board does not agree with the others':
@@ -224,7 +226,7 @@ class Calibration:
                        "turntable check figures (organlab calibrate)")
         return out
 
-    def summary(self):
+    def summary(self) -> list[str]:
         """A few lines for a terminal."""
         K = self.camera.K
         lines = []
@@ -243,7 +245,7 @@ class Calibration:
 
 
 # ================================================================= session glue
-def session_fingerprint(session):
+def session_fingerprint(session: Session) -> dict:
     """What a calibration of ``session`` is computed from, hashed.
 
     Returns
@@ -271,7 +273,7 @@ def session_fingerprint(session):
     }
 
 
-def calibrate(session, *, progress=None):
+def calibrate(session: Session | str | Path, *, progress: Callable[[int, int], object] | None = None) -> Calibration:
     """Calibrate a session from its board images.
 
     Intrinsics come from ``session.json``'s ``camera`` when given (no fit), otherwise from
@@ -341,13 +343,14 @@ def calibrate(session, *, progress=None):
     return Calibration(camera, intr, tt, session.pattern, session_fingerprint(session))
 
 
-def needs_calibration(session):
+def needs_calibration(session: Session) -> bool:
     """True when the session lacks given intrinsics, or a view lacks a given pose."""
     session = _as_session(session)
     return session.camera is None or any(v.pose is None for v in session.views)
 
 
-def calibration_for(session, *, calibration=None, recalibrate=False, progress=None):
+def calibration_for(session: Session | str | Path, *, calibration: Calibration | None = None, recalibrate: bool = False,
+                    progress: Callable[[int, int], object] | None = None) -> tuple[Calibration, str]:
     """The calibration a reconstruction of ``session`` should use, and how it was obtained.
 
     In order: ``calibration`` when given (checked against the session: refused when it was

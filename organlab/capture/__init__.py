@@ -5,8 +5,9 @@
   verification, retries); every exchange goes to a :class:`SerialLog`.
 * Cameras: :class:`OpenCVCamera` (device index or URL; settling, averaging),
   :class:`FolderCamera` (replay), :class:`SimCamera`.
-* :class:`SimRig`: a simulated MDrive controller on a pty pair with
-  injectable faults, and a camera rendering the synthetic phantom and board.
+* The simulated rig (a simulated MDrive controller on a pty pair with
+  injectable faults, and a camera rendering the synthetic phantom and board)
+  is test data: :class:`organlab.synthetic.SimRig`, passed as ``rig=``.
 * :func:`capture_session`: background, hand-held board, board on the table at
   every stop (audited at once by :class:`AngleAudit`), views; ``session.json``
   rewritten atomically after every image; a second run continues.
@@ -30,7 +31,6 @@ from ._errors import (
 from ._mdrive import MDriveTurntable, SerialLog, Turntable
 from ._run import read_intrinsics, run_capture
 from ._session import capture_session, console_prompt, stop_angles
-from ._simrig import MDriveSimulator, SimCamera, SimRig
 
 __all__ = [
     "Turntable",
@@ -39,9 +39,6 @@ __all__ = [
     "CaptureCamera",
     "OpenCVCamera",
     "FolderCamera",
-    "SimRig",
-    "SimCamera",
-    "MDriveSimulator",
     "AngleAudit",
     "board_rotation",
     "AUDIT_LIMIT_DEG",

@@ -11,7 +11,6 @@ from ._cameras import FolderCamera, OpenCVCamera
 from ._errors import CaptureError
 from ._mdrive import MDriveTurntable
 from ._session import capture_session, console_prompt
-from ._simrig import SimRig
 
 __all__ = ["run_capture", "read_intrinsics"]
 
@@ -57,7 +56,7 @@ def run_capture(
     stop_on_flag=True,
     settle_frames=3,
     average=1,
-    sim_options=None,
+    rig=None,
     sim_faults=(),
     on_view=None,
     prompt=None,
@@ -79,11 +78,13 @@ def run_capture(
         Keyword arguments of :class:`~organlab.capture.MDriveTurntable`
         (``steps_per_rev``, ``microsteps``, ``gear_ratio``, ``baudrate``,
         ``device_name``, ``home_switch``, ...).
-    sim_options : dict, optional
-        Keyword arguments of :class:`~organlab.capture.SimRig`.
+    rig : organlab.synthetic.SimRig, optional
+        The simulated rig, needed with ``turntable="sim"`` (the CLI makes it;
+        a simulator is test data, so the capture stage does not build one);
+        closed at the end.
     sim_faults : sequence of dict
         Faults injected into the simulated controller
-        (:meth:`~organlab.capture.MDriveSimulator.inject` keywords, with ``kind``).
+        (:meth:`organlab.synthetic.MDriveSimulator.inject` keywords, with ``kind``).
     Others : see :func:`~organlab.capture.capture_session`.
 
     Returns
@@ -91,11 +92,14 @@ def run_capture(
     Path
     """
     camera = camera or ("sim" if turntable == "sim" else "0")
-    rig = table = cam = None
+    if turntable == "sim" and rig is None:
+        raise CaptureError("turntable 'sim' needs the simulated rig: rig=organlab.synthetic.SimRig(...)")
+    if turntable != "sim" and rig is not None:
+        raise CaptureError("rig= is the simulated rig: give it with turntable='sim'")
+    table = cam = None
     try:
         reference = None
         if turntable == "sim":
-            rig = SimRig(**(sim_options or {}))
             for f in sim_faults:
                 f = dict(f)
                 rig.controller.inject(f.pop("kind"), **f)

@@ -321,7 +321,7 @@ def capture_session(
         more images are taken; otherwise only flag it.
     prompt : callable(stage, message, index)
         Asks the operator to prepare ``stage``; the simulated rig's
-        :meth:`~organlab.capture.SimRig.prompt` does it itself.
+        :meth:`organlab.synthetic.SimRig.prompt` does it itself.
     on_view : callable(index, angle_deg, image), optional
         Called after each view is saved (e.g. a live viewer).
     say : callable(str), optional

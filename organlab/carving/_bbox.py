@@ -32,6 +32,8 @@ summed-area tables and gives exactly the same occupancy.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from ..camera import Camera
@@ -284,7 +286,8 @@ class _Engine:
 
 
 # ------------------------------------------------------------------ public
-def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000, min_pixels=1):
+def carve_reference(masks: Sequence[Silhouette | np.ndarray], cameras: Sequence[Camera], grid: VoxelGrid, *,
+                    chunk_voxels: int = 2_000_000, min_pixels: int = 1) -> np.ndarray:
     """Visual hull by the thesis's bounding-box test, plain vectorized numpy.
 
     Every voxel is tested in every view (see the module docstring for the
@@ -332,7 +335,8 @@ def carve_reference(masks, cameras, grid, *, chunk_voxels=2_000_000, min_pixels=
     return _reference_counts(masks, cameras, grid, chunk_voxels, min_pixels) == 0
 
 
-def carve(masks, cameras, grid, *, tolerance=0, min_pixels=1):
+def carve(masks: Sequence[Silhouette | np.ndarray], cameras: Sequence[Camera], grid: VoxelGrid, *, tolerance: int = 0,
+          min_pixels: int = 1) -> np.ndarray:
     """Visual hull: the voxels that at most ``tolerance`` views carve.
 
     The same bounding-box test as :func:`carve_reference` (module docstring),
@@ -422,7 +426,7 @@ class ProgressiveCarver:
         As in :func:`carve`.
     """
 
-    def __init__(self, grid, *, tolerance=0, min_pixels=1):
+    def __init__(self, grid: VoxelGrid, *, tolerance: int = 0, min_pixels: int = 1) -> None:
         _check_grid(grid)
         self.grid = grid
         self.tolerance = _check_tolerance(tolerance)
@@ -431,24 +435,24 @@ class ProgressiveCarver:
         self._n_views = 0
 
     @property
-    def n_views(self):
+    def n_views(self) -> int:
         """Number of views added so far."""
         return self._n_views
 
     @property
-    def occupancy(self):
+    def occupancy(self) -> np.ndarray:
         """Current hull, ``grid.shape`` bool (a new array)."""
         return self._engine.occupancy
 
     @property
-    def carve_counts(self):
+    def carve_counts(self) -> np.ndarray:
         """Number of views that carved each voxel, ``grid.shape`` uint16.
 
         Counting stops once a voxel is removed (at ``tolerance + 1``).
         """
         return self._engine.counts.copy()
 
-    def add_view(self, mask, camera):
+    def add_view(self, mask: Silhouette | np.ndarray, camera: Camera) -> None:
         """Carve with one more view and return the new occupancy.
 
         Parameters

@@ -11,14 +11,20 @@ the first view that carves it.  The voxels no view carves (``-1``) are exactly
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
+from ..camera import Camera
+from ..grid import VoxelGrid
+from ..masks import Silhouette
 from ._bbox import ProgressiveCarver, _check_grid, _check_views
 
 __all__ = ["carving_views"]
 
 
-def carving_views(masks, cameras, grid, *, min_pixels=1):
+def carving_views(masks: Sequence[Silhouette | np.ndarray], cameras: Sequence[Camera], grid: VoxelGrid, *,
+                  min_pixels: int = 1) -> np.ndarray:
     """The first view (in the given order) that carves each voxel.
 
     Parameters

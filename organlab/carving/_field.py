@@ -61,12 +61,15 @@ surface's area instead of the grid's volume.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numba import njit, prange
 
+from ..bandfield import BandField
 from ..camera import Camera
-from ..masks import as_arrays
+from ..grid import VoxelGrid
+from ..masks import Silhouette, as_arrays
 from ..nbcam import pack_camera
 from ._band import band_field
 from ._bbox import _check_grid
@@ -351,7 +354,16 @@ def _band_px(camera, grid):
     return int(min(max(band, 3), _MAX_BAND)), band > _MAX_BAND
 
 
-def hull_field(silhouettes, cameras, grid, *, tolerance=0, min_views=1, progress=None, sparse=False):
+def hull_field(
+    silhouettes: Sequence[Silhouette | np.ndarray],
+    cameras: Sequence[Camera],
+    grid: VoxelGrid,
+    *,
+    tolerance: int = 0,
+    min_views: int = 1,
+    progress: Callable[[int, int], object] | None = None,
+    sparse: bool = False,
+) -> np.ndarray | BandField:
     """Field sampled at voxel centres whose 0.5 level is the visual hull's surface.
 
     The value at a voxel centre is ``0.5 + m / voxel_size`` clipped to

@@ -13,6 +13,9 @@ Private modules: ``_kernels`` (numba footprints and item buffers),
 ``_methods`` (the two methods), ``_api`` (the public functions).
 """
 
+import numpy as np
+
+from ..grid import VoxelGrid
 from ._api import color_voxels, voxel_colors
 from ._common import DEFAULT_SUPPORT, DEFAULT_THRESHOLD, ColoringResult, VisibilityConstraintError
 from ._visibility import check_ordinal_visibility
@@ -23,7 +26,7 @@ from ._visibility import check_ordinal_visibility
 PIPELINE_OPTIONS = {"measure": "shading", "exposure": True, "guard": True, "support": "auto"}
 
 
-def report_entry(result, candidates, grid):
+def report_entry(result: ColoringResult, candidates: np.ndarray, grid: VoxelGrid) -> dict:
     """The ``coloring`` entry of report.json: threshold, automatic, removed volume (mm^3), guard, noise.
 
     Parameters

@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
+from typing import Literal
 
 import numpy as np
 
+from ..camera import Camera
+from ..grid import VoxelGrid
+from ._auto import auto_support, auto_threshold, exposure_gains, image_noise, normalise
+from ._auto import guard as _guard
 from ._common import (
     DEFAULT_SUPPORT,
     DEFAULT_THRESHOLD,
@@ -15,30 +21,28 @@ from ._common import (
     _completeness_rule,
 )
 from ._methods import _owned, _space_carving, _surface, _voxel_coloring
-from ._auto import auto_support, auto_threshold, exposure_gains, image_noise, normalise
-from ._auto import guard as _guard
 from ._statistics import _rgb, _Stats
 
 _MEASURES = ("pooled", "between", "trimmed", "normalized", "shading")
 
 
 def color_voxels(
-    images,
-    cameras,
-    occupancy,
-    grid,
+    images: Sequence[np.ndarray],
+    cameras: Sequence[Camera],
+    occupancy: np.ndarray | None,
+    grid: VoxelGrid,
     *,
-    threshold=DEFAULT_THRESHOLD,
-    method="voxel_coloring",
-    start="hull",
-    completeness=None,
-    masks=None,
-    measure="between",
-    support=DEFAULT_SUPPORT,
-    progress=None,
-    exposure=False,
-    guard=False,
-):
+    threshold: float | Literal["auto"] | None = DEFAULT_THRESHOLD,
+    method: str = "voxel_coloring",
+    start: str = "hull",
+    completeness: float | None = None,
+    masks: Sequence[np.ndarray] | None = None,
+    measure: str = "between",
+    support: int | Literal["auto"] | None = DEFAULT_SUPPORT,
+    progress: Callable[[int, int], object] | None = None,
+    exposure: bool = False,
+    guard: bool = False,
+) -> ColoringResult:
     """Carve the voxels whose colours disagree between the views.
 
     See the module docstring for the algorithms, the visibility constraint
@@ -229,7 +233,8 @@ def _prepare(stack, cams, bg, candidates, grid, threshold, automatic, exposure, 
 
 
 
-def voxel_colors(images, cameras, occupancy, grid, *, masks=None):
+def voxel_colors(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupancy: np.ndarray, grid: VoxelGrid, *,
+                 masks: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Colour the surface voxels of an occupancy, without carving.
 
     Every view renders an item buffer of the surface voxels (each footprint

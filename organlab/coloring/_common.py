@@ -91,7 +91,7 @@ class ColoringResult:
     gains: tuple | None = None
     support: int = DEFAULT_SUPPORT
 
-    def stats(self):
+    def stats(self) -> dict:
         """The scalar fields as a JSON-ready dict."""
         return {
             "method": self.method,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numba as nb
 import numpy as np
 
@@ -51,7 +53,7 @@ def _candidate_bounds(candidates, grid):
     return o + (lo_i - 0.5) * h, o + (hi_i + 0.5) * h
 
 
-def check_ordinal_visibility(cameras, bounds_min, bounds_max):
+def check_ordinal_visibility(cameras: Sequence[Camera], bounds_min: np.ndarray, bounds_max: np.ndarray) -> tuple[int, bool]:
     """Find a layered sweep that meets the ordinal visibility constraint.
 
     The constraint holds for sweep direction ``d`` if every camera centre lies

@@ -13,7 +13,10 @@ threads: cv2, numpy and the numba kernels release the GIL.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
@@ -78,8 +81,10 @@ class SilhouetteModel:
         Keyed views' exposure gains against the background (1 otherwise).
     """
 
-    def __init__(self, images, background_frames=None, *, mode="color", background="median", masks=None, names=None,
-                 backdrop=None):
+    def __init__(self, images: Sequence[np.ndarray], background_frames: Sequence[np.ndarray] | None = None, *,
+                 mode: Literal["color", "grey"] = "color", background: Literal["median", "mean"] = "median",
+                 masks: Sequence[np.ndarray | None] | None = None, names: Sequence[str] | None = None,
+                 backdrop: dict | None = None) -> None:
         images = list(images)
         n = len(images)
         masks = [None] * n if masks is None else list(masks)
@@ -135,7 +140,9 @@ class SilhouetteModel:
             raise SessionError(f"{self.names[i]}: {e}") from None
 
     @classmethod
-    def from_session(cls, session, *, images=None, views=None, mode="color", background="median"):
+    def from_session(cls, session: Session | str | Path, *, images: Sequence[np.ndarray] | None = None,
+                     views: Sequence[int] | None = None, mode: Literal["color", "grey"] = "color",
+                     background: Literal["median", "mean"] = "median") -> SilhouetteModel:
         """Prepare a session's views (as :func:`organlab.silhouette.silhouettes` reads them).
 
         Parameters
@@ -186,7 +193,7 @@ class SilhouetteModel:
     def __len__(self):
         return len(self.images)
 
-    def auto_thresholds(self):
+    def auto_thresholds(self) -> list[float | None]:
         """Each view's automatic threshold, None for given masks; cached.
 
         Subtraction: Li's, at least :attr:`floor`.  Keying: from the border
@@ -198,7 +205,7 @@ class SilhouetteModel:
             self._auto[i] = t
         return list(self._auto)
 
-    def auto_threshold(self, i):
+    def auto_threshold(self, i: int) -> float | None:
         """View ``i``'s automatic threshold (as :meth:`auto_thresholds`, one view; None for a given mask)."""
         if not 0 <= i < len(self):
             raise IndexError(f"view {i} out of range: {len(self)} views")
@@ -216,7 +223,8 @@ class SilhouetteModel:
         except ValueError as e:
             raise SessionError(f"{self.names[i]}: {e}") from None
 
-    def silhouettes(self, *, threshold=None, progress=None, **clean):
+    def silhouettes(self, *, threshold: float | None = None, progress: Callable[[int, int], object] | None = None,
+                    **clean: Any) -> list[Silhouette]:
         """Silhouettes of every view at a threshold.
 
         Parameters
@@ -250,7 +258,7 @@ class SilhouetteModel:
                 progress(i + 1, n)
         return out
 
-    def silhouette(self, i, *, threshold=None, **clean):
+    def silhouette(self, i: int, *, threshold: float | None = None, **clean: Any) -> Silhouette:
         """The silhouette of view ``i`` at a threshold (in :attr:`units`; its automatic one when omitted).
 
         Returns
@@ -314,8 +322,15 @@ def _map_views(fn, indices):
 
 
 def silhouettes(
-    session, *, images=None, threshold=None, mode="color", background="median", progress=None, **clean
-):
+    session: Session | str | Path,
+    *,
+    images: Sequence[np.ndarray] | None = None,
+    threshold: float | None = None,
+    mode: Literal["color", "grey"] = "color",
+    background: Literal["median", "mean"] = "median",
+    progress: Callable[[int, int], object] | None = None,
+    **clean: Any,
+) -> list[Silhouette]:
     """Silhouettes of every view of a session.
 
     A view with a ``mask`` in ``session.json`` uses it as given (non-zero =

@@ -15,6 +15,9 @@ view's own ``mask`` where the session gives one.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any, Literal
+
 import numpy as np
 
 from ..masks import Silhouette
@@ -41,7 +44,7 @@ def _stack(frames):
     return np.stack([np.asarray(f) for f in frames])
 
 
-def background_model(frames, *, method="median"):
+def background_model(frames: Sequence[np.ndarray], *, method: Literal["median", "mean"] = "median") -> np.ndarray:
     """Model of the empty scene from several frames.
 
     Parameters
@@ -66,7 +69,7 @@ def background_model(frames, *, method="median"):
     raise ValueError(f"method must be 'median' or 'mean', got {method!r}")
 
 
-def background_noise(frames):
+def background_noise(frames: Sequence[np.ndarray]) -> float:
     """Typical pixel noise of the background frames, grey levels.
 
     Parameters
@@ -88,7 +91,7 @@ def background_noise(frames):
     return float(np.median(sd))
 
 
-def difference(image, background, *, mode="color"):
+def difference(image: np.ndarray, background: np.ndarray, *, mode: Literal["color", "grey"] = "color") -> np.ndarray:
     """Per-pixel distance between an image and the background model.
 
     Parameters
@@ -144,7 +147,7 @@ def _luma(rgb):
     return rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
-def auto_threshold(diff, *, method="li", floor=0.0):
+def auto_threshold(diff: np.ndarray, *, method: Literal["li", "otsu", "triangle"] = "li", floor: float = 0.0) -> float:
     """Automatic threshold of a difference image.
 
     Parameters
@@ -185,7 +188,8 @@ def _disk(radius):
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
 
 
-def clean_mask(mask, *, open_radius=1, close_radius=2, min_area_fraction=0.05, fill_holes=True):
+def clean_mask(mask: np.ndarray, *, open_radius: int = 1, close_radius: int = 2, min_area_fraction: float = 0.05,
+               fill_holes: bool = True) -> np.ndarray:
     """Clean a raw thresholded silhouette.
 
     Morphological opening removes isolated noise pixels, closing bridges
@@ -267,7 +271,7 @@ def _fill_holes(out):
     return out | ~border[lab2]
 
 
-def coverage(image, background, mask, *, window=5):
+def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, window: int = 5) -> np.ndarray:
     """Sub-pixel silhouette: the fraction of each pixel covered by the specimen.
 
     A pixel on the silhouette's edge that the specimen covers by a fraction
@@ -344,7 +348,8 @@ def _coverage_in(image, background, m8, window):
     return cov
 
 
-def silhouette(image, background, *, threshold=None, mode="color", floor=0.0, **clean):
+def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | None = None,
+               mode: Literal["color", "grey"] = "color", floor: float = 0.0, **clean: Any) -> Silhouette:
     """Silhouette of one view by background subtraction.
 
     Parameters

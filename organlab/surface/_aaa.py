@@ -17,8 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from ..carving import BandField
+
+from ..bandfield import BandField
 from ..errors import OrganlabError
+from ..grid import VoxelGrid
 from ._sampling import FieldSampler
 
 
@@ -65,7 +67,7 @@ class AAAMeasures:
     sac_volume_mm3: float
     params: dict = field(default_factory=dict)
 
-    def summary(self):
+    def summary(self) -> dict:
         """JSON-ready dict of the scalar measures."""
         return {
             "max_diameter_mm": self.max_diameter_mm,
@@ -171,8 +173,16 @@ def _section(sample, level, c, t, half, px):
 
 
 def measure_aaa(
-    volume, grid, *, level=0.5, step_mm=1.0, smooth_mm=5.0, pixel_mm=None, sac_factor=1.2, centreline_voxel_mm=0.5
-):
+    volume: np.ndarray | BandField,
+    grid: VoxelGrid,
+    *,
+    level: float = 0.5,
+    step_mm: float = 1.0,
+    smooth_mm: float = 5.0,
+    pixel_mm: float | None = None,
+    sac_factor: float = 1.2,
+    centreline_voxel_mm: float = 0.5,
+) -> AAAMeasures:
     """Centreline, maximum diameter, its location, sac length and volume of a vessel.
 
     Parameters

@@ -9,7 +9,7 @@ import numpy as np
 from ._mesh import Mesh
 
 
-def write_ply(path, mesh):
+def write_ply(path: str | Path, mesh: Mesh) -> None:
     """Write a binary little-endian PLY (vertex colours when the mesh has them).
 
     Parameters
@@ -41,7 +41,7 @@ def write_ply(path, mesh):
         fh.write(face.tobytes())
 
 
-def write_stl(path, mesh):
+def write_stl(path: str | Path, mesh: Mesh) -> None:
     """Write a binary STL (world frame, mm).
 
     Parameters
@@ -65,7 +65,7 @@ def write_stl(path, mesh):
         fh.write(rec.tobytes())
 
 
-def read_ply(path):
+def read_ply(path: str | Path) -> Mesh:
     """Read a PLY written by :func:`write_ply` (binary little-endian, triangles).
 
     Returns
@@ -94,7 +94,7 @@ def read_ply(path):
     return Mesh(v, face["i"].astype(np.int64), c)
 
 
-def write_obj(path, mesh):
+def write_obj(path: str | Path, mesh: Mesh) -> None:
     """Write a Wavefront OBJ (text; world frame, mm; vertex colours as ``v x y z r g b`` in 0-1).
 
     Parameters
@@ -114,7 +114,7 @@ def write_obj(path, mesh):
         np.savetxt(fh, np.asarray(mesh.faces) + 1, fmt="f %d %d %d")
 
 
-def read_obj(path):
+def read_obj(path: str | Path) -> Mesh:
     """Read the vertices and triangles of an OBJ written by :func:`write_obj`.
 
     Returns
@@ -131,7 +131,7 @@ def read_obj(path):
     return Mesh(np.array(verts, dtype=np.float64).reshape(-1, 3), np.array(faces, dtype=np.int64).reshape(-1, 3))
 
 
-def write_vtk(path, mesh):
+def write_vtk(path: str | Path, mesh: Mesh) -> Path:
     """Write a triangle mesh as VTK: legacy ``.vtk`` or XML ``.vtu`` after the suffix (meshio).
 
     Parameters

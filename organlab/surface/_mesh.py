@@ -11,9 +11,12 @@ outward, and degenerate faces are not produced.  ``method='classic'`` and
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from ..bandfield import BandField
+from ..grid import VoxelGrid
 from ..mesh import Mesh
 from ._bandmesh import band_mesh
 from ._classic_mc import classic_marching_cubes
@@ -24,7 +27,8 @@ __all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vert
 MC_METHODS = ("lewiner", "decider", "classic")
 
 
-def mesh_from_volume(volume, grid, *, level=0.5, method="lewiner"):
+def mesh_from_volume(volume: np.ndarray, grid: VoxelGrid, *, level: float = 0.5,
+                     method: Literal["lewiner", "decider", "classic"] = "lewiner") -> Mesh:
     """Closed surface of a voxel model or field by marching cubes.
 
     Parameters
@@ -75,7 +79,7 @@ def mesh_from_volume(volume, grid, *, level=0.5, method="lewiner"):
     return mesh
 
 
-def mesh_from_field(field, grid):
+def mesh_from_field(field: np.ndarray | BandField, grid: VoxelGrid) -> Mesh:
     """The surface of a hull field or a voxel model: its 0.5 level.
 
     ``mesh_from_volume(field, grid, level=0.5)``; the level that
@@ -110,7 +114,7 @@ def mesh_from_field(field, grid):
     return mesh_from_volume(field, grid, level=0.5)
 
 
-def measure(mesh):
+def measure(mesh: Mesh) -> dict:
     """The measures of a mesh that ``report.json`` holds.
 
     Parameters
@@ -148,7 +152,7 @@ def measure(mesh):
     }
 
 
-def color_vertices(mesh, colors, colored, grid):
+def color_vertices(mesh: Mesh, colors: np.ndarray, colored: np.ndarray, grid: VoxelGrid) -> Mesh:
     """The mesh with each vertex coloured as its nearest coloured voxel.
 
     Parameters

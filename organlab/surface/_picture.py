@@ -12,10 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..mesh import Mesh
+from ._aaa import AAAMeasures
+
 __all__ = ["mesh_snapshot", "aaa_picture"]
 
 
-def mesh_snapshot(mesh, path, *, window_size=(800, 600), title=None, elevation_deg=20.0, azimuth_deg=-60.0):
+def mesh_snapshot(mesh: Mesh, path: str | Path, *, window_size: tuple[int, int] = (800, 600), title: str | None = None,
+                  elevation_deg: float = 20.0, azimuth_deg: float = -60.0) -> Path:
     """Render a mesh off-screen to a PNG.
 
     Parameters
@@ -48,7 +52,7 @@ def mesh_snapshot(mesh, path, *, window_size=(800, 600), title=None, elevation_d
     return _shoot(p, mesh, path, elevation_deg, azimuth_deg, 1.15)
 
 
-def aaa_picture(mesh, measures, path, *, window_size=(900, 900)):
+def aaa_picture(mesh: Mesh, measures: AAAMeasures, path: str | Path, *, window_size: tuple[int, int] = (900, 900)) -> Path:
     """The mesh (translucent) with its centreline and the maximum-diameter section, off-screen (pyvista, EGL).
 
     Parameters

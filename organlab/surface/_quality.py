@@ -6,6 +6,8 @@ import weakref
 
 import numpy as np
 
+from ..mesh import Mesh
+
 _CACHE = weakref.WeakKeyDictionary()  # Mesh is immutable: its figures are computed once
 
 
@@ -63,7 +65,7 @@ def nonmanifold_vertices(mesh):
     return int((np.bincount(fans[:, 0], minlength=nv) > 1).sum())
 
 
-def boundary_loops(mesh):
+def boundary_loops(mesh: Mesh) -> list[int]:
     """Edge counts of the boundary loops (holes), sorted decreasing; ``[]`` for a closed mesh."""
     f = np.asarray(mesh.faces)
     if len(f) == 0:
@@ -84,7 +86,7 @@ def boundary_loops(mesh):
     return sorted((int(s) for s in sizes[sizes > 0]), reverse=True)
 
 
-def mesh_quality(mesh):
+def mesh_quality(mesh: Mesh) -> dict:
     """Topology and triangle-quality figures of a mesh.
 
     Returns

@@ -13,6 +13,8 @@ are cut out and filled before remeshing, see :mod:`._folds`.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
 from ..errors import OrganlabError
@@ -82,7 +84,7 @@ def _repair_once(ms, speck_mm):
     return loops
 
 
-def repair_mesh(mesh, *, speck_mm=3.0, max_rounds=4):
+def repair_mesh(mesh: Mesh, *, speck_mm: float = 3.0, max_rounds: int = 4) -> tuple[Mesh, dict]:
     """Close holes, remove non-manifold edges and vertices, drop specks.
 
     Parameters
@@ -117,7 +119,7 @@ def repair_mesh(mesh, *, speck_mm=3.0, max_rounds=4):
     return out, rec
 
 
-def smooth_mesh(mesh, *, iterations=10, lambda_=0.5, mu=-0.53):
+def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: float = -0.53) -> tuple[Mesh, dict]:
     """Taubin smoothing (shrink-free): relaxes the marching-cubes staircase.
 
     Parameters
@@ -138,7 +140,8 @@ def smooth_mesh(mesh, *, iterations=10, lambda_=0.5, mu=-0.53):
     return out, _step("smooth", mesh, out, iterations=int(iterations))
 
 
-def remesh_mesh(mesh, target_mm, *, iterations=10, feature_deg=60.0, min_angle=20.0, max_passes=3):
+def remesh_mesh(mesh: Mesh, target_mm: float, *, iterations: int = 10, feature_deg: float = 60.0, min_angle: float = 20.0,
+                max_passes: int = 3) -> tuple[Mesh, dict]:
     """Isotropic explicit remeshing to edges of about ``target_mm``.
 
     Parameters
@@ -253,17 +256,17 @@ def _check_mesh(mesh):
 
 
 def finish_surface(
-    mesh,
+    mesh: Mesh,
     *,
-    voxel_size,
-    repair=True,
-    smooth=True,
-    remesh="auto",
-    feature_deg=60.0,
-    min_angle=20.0,
-    keep_volume=True,
-    min_edge_mm=0.75,
-):
+    voxel_size: float,
+    repair: bool = True,
+    smooth: bool = True,
+    remesh: Literal["auto"] | float | None = "auto",
+    feature_deg: float = 60.0,
+    min_angle: float = 20.0,
+    keep_volume: bool = True,
+    min_edge_mm: float = 0.75,
+) -> tuple[Mesh, dict]:
     """A repaired, watertight, manifold surface fit for finite-element meshing.
 
     Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and

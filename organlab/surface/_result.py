@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from ..carving import BandField
+from ..bandfield import BandField
 from ..errors import OrganlabError
 from ..grid import VoxelGrid
-from ..session import write_json
+from ..session import Session, write_json
 from ._aaa import measure_aaa
 from ._io import write_obj, write_ply, write_stl, write_vtk
 from ._mesh import mesh_from_volume
@@ -24,7 +25,7 @@ from ._repair import finish_surface
 from ._tetra import TETRA_FORMATS, tetrahedralize, write_tetra
 
 
-def is_aaa_session(session):
+def is_aaa_session(session: Session) -> bool:
     """True when a session says its specimen is an abdominal aortic aneurysm.
 
     ``session.json``'s ``reference.specimen`` (or ``specimen``) is ``"aaa"``,
@@ -44,7 +45,7 @@ def is_aaa_session(session):
     return False
 
 
-def load_voxels(result_dir):
+def load_voxels(result_dir: str | Path) -> tuple[np.ndarray, VoxelGrid]:
     """The surface volume and grid of a result folder's ``voxels.npz``.
 
     Reads the field as stored now (the band: ``field_block``,
@@ -104,7 +105,8 @@ def load_voxels(result_dir):
     return np.asarray(vol, dtype=np.float32), grid
 
 
-def mesh_result(result_dir, *, repair=True, smooth=True, remesh="auto", tetra=False, measure=False, picture=False):
+def mesh_result(result_dir: str | Path, *, repair: bool = True, smooth: bool = True, remesh: Literal["auto"] | float | None = "auto",
+                tetra: bool = False, measure: bool = False, picture: bool = False) -> tuple[dict, dict[str, Path]]:
     """Finish the surface of a reconstruction folder and write it (``DIR/surface/``).
 
     Parameters

@@ -13,7 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from ..errors import OrganlabError
+from ..mesh import Mesh
 
 TETRA_FORMATS = {"vtu": "vtu", "msh": "gmsh", "inp": "abaqus", "xdmf": "xdmf"}
 
@@ -33,7 +35,7 @@ class TetMesh:
     tets: np.ndarray
 
     @property
-    def volume(self):
+    def volume(self) -> float:
         """Total volume, mm^3."""
         return float(_signed_volumes(self.points, self.tets).sum())
 
@@ -43,7 +45,7 @@ def _signed_volumes(points, tets):
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
 
-def tet_quality(tet_mesh):
+def tet_quality(tet_mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
     """Radius ratio and scaled Jacobian of every tetrahedron (1 for the regular one).
 
     Returns
@@ -74,7 +76,7 @@ def tet_quality(tet_mesh):
     return 3.0 * r_in / r_circ, sj
 
 
-def tetrahedralize(mesh, *, size_mm=None, optimize=True):
+def tetrahedralize(mesh: Mesh, *, size_mm: float | None = None, optimize: bool = True) -> tuple[TetMesh, dict]:
     """Fill a closed surface with tetrahedra (gmsh), keeping its triangles as the boundary.
 
     Parameters
@@ -153,7 +155,7 @@ def tetrahedralize(mesh, *, size_mm=None, optimize=True):
     return tm, report
 
 
-def write_tetra(path, tet_mesh):
+def write_tetra(path: str | Path, tet_mesh: TetMesh) -> Path:
     """Write a tetrahedral mesh; the format follows the suffix: .vtu, .msh, .inp or .xdmf (meshio).
 
     Parameters
@@ -172,7 +174,7 @@ def write_tetra(path, tet_mesh):
     return path
 
 
-def read_tetra(path):
+def read_tetra(path: str | Path) -> TetMesh:
     """Read a tetrahedral mesh written by :func:`write_tetra` (any meshio format).
 
     Returns

@@ -35,7 +35,7 @@ def _circumcentres(p):
     return p[:, 0] + x
 
 
-def poles(points):
+def poles(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The two poles of every sample's Voronoi cell.
 
     Parameters
@@ -78,7 +78,7 @@ def poles(points):
     return p_plus, p_minus
 
 
-def crust(points, *, max_angle_deg=None):
+def crust(points: np.ndarray, *, max_angle_deg: float | None = None) -> Mesh:
     """Crust of surface samples (Amenta, Bern and Kamvysselis).
 
     Parameters
@@ -119,7 +119,7 @@ def crust(points, *, max_angle_deg=None):
     return Mesh(pts, faces.astype(np.int64))
 
 
-def poisson_surface(points, normals, *, depth=8):
+def poisson_surface(points: np.ndarray, normals: np.ndarray, *, depth: int = 8) -> Mesh:
     """Screened Poisson surface of oriented points (pymeshlab).
 
     Parameters
@@ -144,7 +144,7 @@ def poisson_surface(points, normals, *, depth=8):
     return out if out.volume >= 0 else Mesh(out.vertices, out.faces[:, ::-1].copy())
 
 
-def vertex_normals(mesh):
+def vertex_normals(mesh: Mesh) -> np.ndarray:
     """Area-weighted outward unit normals at the vertices, ``(V, 3)``."""
     v, f = mesh.vertices, mesh.faces
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
@@ -154,7 +154,7 @@ def vertex_normals(mesh):
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
-def labelled_balls(points, normals):
+def labelled_balls(points: np.ndarray, normals: np.ndarray) -> Mesh:
     """Closed surface from oriented samples by labelling Delaunay balls inside or outside.
 
     Each Delaunay tetrahedron of the samples has a Delaunay ball centred at

@@ -25,7 +25,8 @@ folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
 Private modules: ``_boards`` (camera, board poses and images), ``_specimens``,
 ``_render`` (ray casting, shading), ``_hard`` (the hard lamp), ``_views``
 (views and silhouettes), ``_session`` (the session folder), ``_truth``
-(distance to a specimen's exact surface, to score a mesh), ``_cli``.
+(distance to a specimen's exact surface, to score a mesh), ``_simrig``
+(the simulated capture rig: MDrive controller on a pty, rendering camera), ``_cli``.
 """
 
 __all__ = [
@@ -56,6 +57,9 @@ __all__ = [
     "main",
     "distance_to_specimen",
     "surface_samples",
+    "SimRig",
+    "SimCamera",
+    "MDriveSimulator",
 ]
 
 from ._boards import (
@@ -83,5 +87,6 @@ from ._specimens import (
     striped_albedo,
     tissue_albedo,
 )
+from ._simrig import MDriveSimulator, SimCamera, SimRig
 from ._truth import distance_to_specimen, surface_samples
 from ._views import render_masks, render_view

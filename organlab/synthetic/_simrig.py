@@ -20,9 +20,11 @@ import tty
 
 import numpy as np
 
-from ..synthetic import BOARD_MARGIN, DEFAULT_PATTERN, _render, default_camera, intrinsic_board_poses, make_specimen, turntable_board_pose
-from ._cameras import CaptureCamera
-from ._mdrive import MDriveTurntable
+from ..capture import CaptureCamera, MDriveTurntable
+from ..session import DEFAULT_PATTERN
+from . import _render
+from ._boards import BOARD_MARGIN, default_camera, intrinsic_board_poses, turntable_board_pose
+from ._specimens import make_specimen
 
 __all__ = ["MDriveSimulator", "SimRig", "SimCamera"]
 
