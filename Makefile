@@ -35,7 +35,7 @@ bench: $(STAMP)
 sample: $(STAMP)
 	$(BIN)/python -m organlab.synthetic sample_sessions/aaa_phantom --seed 0 --no-camera --no-poses --force
 
-# also drops numba's on-disk kernel cache (it does not notice edits of organlab/_nbcam.py)
+# also drops numba's on-disk kernel cache (it does not notice edits of organlab/nbcam.py)
 clean:
 	rm -rf $(VENV) demo_out
 	find organlab -name __pycache__ -type d -prune -exec rm -rf {} +
