@@ -67,7 +67,7 @@ def _bouguet_values(path):
     return out
 
 
-def read_bouguet(path, *, image_size=None):
+def read_bouguet(path: str | Path, *, image_size: tuple[int, int] | None = None) -> tuple[Camera, dict]:
     """Read Bouguet's toolbox ``Calib_Results.m``.
 
     Parameters
@@ -136,7 +136,7 @@ def _fmt_vec(a):
     return "[ " + " ; ".join(f"{x:.15f}" for x in np.ravel(a)) + " ]"
 
 
-def write_bouguet(path, camera, *, errors=None):
+def write_bouguet(path: str | Path, camera: Camera, *, errors: dict | None = None) -> Path:
     """Write intrinsics as Bouguet's toolbox ``Calib_Results.m``.
 
     Parameters
@@ -189,7 +189,7 @@ def write_bouguet(path, camera, *, errors=None):
     return path
 
 
-def read_opencv(path):
+def read_opencv(path: str | Path) -> tuple[Camera, dict]:
     """Read an OpenCV calibration file (YAML or XML).
 
     Parameters
@@ -257,7 +257,7 @@ def read_opencv(path):
     return camera, extra
 
 
-def write_opencv(path, camera, *, rms_px=None):
+def write_opencv(path: str | Path, camera: Camera, *, rms_px: float | None = None) -> Path:
     """Write intrinsics as OpenCV's calibration sample does (YAML or XML by extension).
 
     Parameters
@@ -290,7 +290,7 @@ def write_opencv(path, camera, *, rms_px=None):
     return path
 
 
-def read_camera(path, *, image_size=None):
+def read_camera(path: str | Path, *, image_size: tuple[int, int] | None = None) -> Camera:
     """Read intrinsics from a ``Calib_Results.m``, OpenCV YAML/XML or organlab JSON file.
 
     Parameters

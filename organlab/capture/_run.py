@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from ..camera import Camera
 from ._audit import AUDIT_LIMIT_DEG
@@ -15,7 +19,7 @@ from ._session import capture_session, console_prompt
 __all__ = ["run_capture", "read_intrinsics"]
 
 
-def read_intrinsics(path, image_size=None):
+def read_intrinsics(path: str | Path, image_size: tuple[int, int] | None = None) -> Camera:
     """Intrinsics from a ``calibration.json`` (``camera``) or a ``session.json`` (``camera``).
 
     Returns
@@ -42,27 +46,27 @@ def _open_camera(spec, rig, *, settle_frames, average):
 
 
 def run_capture(
-    out,
+    out: str | Path,
     *,
-    turntable="sim",
-    camera=None,
-    step_deg=10.0,
-    n_background=20,
-    n_intrinsic=0,
-    board=True,
-    intrinsics_file=None,
-    drive=None,
-    audit_limit_deg=None,
-    stop_on_flag=True,
-    settle_frames=3,
-    average=1,
-    rig=None,
-    sim_faults=(),
-    on_view=None,
-    prompt=None,
-    say=None,
-    progress=None,
-):
+    turntable: str = "sim",
+    camera: str | None = None,
+    step_deg: float = 10.0,
+    n_background: int = 20,
+    n_intrinsic: int = 0,
+    board: bool = True,
+    intrinsics_file: str | Path | None = None,
+    drive: dict | None = None,
+    audit_limit_deg: float | None = None,
+    stop_on_flag: bool = True,
+    settle_frames: int = 3,
+    average: int = 1,
+    rig: Any = None,
+    sim_faults: Sequence[dict] = (),
+    on_view: Callable[[int, float, np.ndarray], object] | None = None,
+    prompt: Callable[[str, str, int | None], object] | None = None,
+    say: Callable[[str], object] | None = None,
+    progress: Callable[[int, int], object] | None = None,
+) -> Path:
     """Capture with the named devices; the command ``organlab capture`` calls this.
 
     Parameters
