@@ -50,7 +50,8 @@ from .preflight import atomic_output_dir, check_grid_memory
 from .session import Session, load_session, write_json
 from .silhouette import Silhouette, SilhouetteModel
 from . import surface  # its writers through the module (tests replace them to interrupt a write)
-from .surface import color_vertices, finish_surface, is_aaa_session, measure, measure_aaa, mesh_from_field, read_ply
+from .surface import (color_vertices, finish_surface, is_aaa_session, load_voxels, measure, measure_aaa, mesh_from_field,
+                      read_ply)
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
@@ -334,6 +335,14 @@ class AgreementFigures:
         ranking = tuple(sorted(range(len(rows)), key=lambda i: -dis[i]))
         mean = report["agreement"].get("mean_iou", float(np.mean(iou)))
         return cls(names, iou, dis, ranking, float(mean))
+
+    def subset(self, indices: Sequence[int]) -> AgreementFigures:
+        """The figures of some views only (in this order), ranked the same way."""
+        idx = [int(i) for i in indices]
+        dis = tuple(self.disagreement[i] for i in idx)
+        iou = tuple(self.iou[i] for i in idx)
+        return AgreementFigures(tuple(self.names[i] for i in idx), iou, dis,
+                                tuple(sorted(range(len(idx)), key=lambda k: -dis[k])), float(np.mean(iou)))
 
     @property
     def worst(self) -> int:
@@ -888,12 +897,21 @@ class Engine:
         )
 
     # ------------------------------------------------------------ for the viewer
-    def stream_hull(self, settings: Settings, on_view: Callable[[int, np.ndarray, VoxelGrid], None], *,
-                    cancel: Callable[[], bool] | None = None) -> None:
-        """Carve view by view (the thesis's test), calling ``on_view(j, occupancy, grid)`` after each view.
+    @property
+    def is_aaa(self) -> bool:
+        """Whether the session's specimen is an AAA (measured by default: ``Settings.measure=None``)."""
+        return bool(is_aaa_session(self.session))
 
-        What the viewer shows at start-up while the hull grows; the silhouettes
-        and cameras are the engine's (kept for the next :meth:`run`).
+    def view_silhouette(self, j: int, threshold: float | None = None) -> Silhouette:
+        """The silhouette of the engine's view ``j`` at a threshold (its automatic one when None)."""
+        return self.silhouette_model.silhouette(j, threshold=threshold)
+
+    def stream_hull(self, settings: Settings, on_view: Callable[[int, Silhouette, Any, np.ndarray, VoxelGrid], None], *,
+                    cancel: Callable[[], bool] | None = None) -> None:
+        """Carve view by view (the thesis's test), calling ``on_view(j, silhouette, camera, occupancy, grid)``
+        after each view: the hull so far, what the viewer shows at start-up and a capture shows as the table turns.
+
+        The silhouettes and cameras are the engine's stages (kept for the next :meth:`run`).
         """
         settings = settings.validate()
         clock = _Clock(None, cancel)
@@ -902,13 +920,33 @@ class Engine:
         grid = self.grid(settings)
         carver = ProgressiveCarver(grid, tolerance=settings.tolerance)
         for j, (sil, cam) in enumerate(zip(out["silhouettes"], out["calibration"].cameras)):
-            on_view(j, carver.add_view(sil.mask, cam), grid)
+            on_view(j, sil, cam, carver.add_view(sil.mask, cam), grid)
             clock.check()
 
     def carving_views(self, rec: Reconstruction) -> np.ndarray:
         """For every voxel of ``rec``'s grid, the first view that carves it (-1: kept), ``grid.shape`` int16
         (:func:`organlab.carving.carving_views`)."""
         return carving_views(rec.masks, rec.cameras, rec.grid)
+
+    def load_result(self, folder: str | Path) -> Reconstruction:
+        """A result folder of this session (:meth:`Reconstruction.load`) with the engine's views, cameras and
+        silhouettes (at the thresholds its report used), its agreement figures from the report, and the AAA
+        measures (the report keeps only their summary: measured again from ``voxels.npz``, the volume
+        ``organlab reconstruct`` measured)."""
+        rec = Reconstruction.load(folder, session=self.session)
+        rows = rec.report.get("views", [])
+        rec.cameras = self.cameras()
+        rec.silhouettes = [self.view_silhouette(j, rows[i].get("silhouette_threshold") if i < len(rows) else None)
+                           for j, i in enumerate(self.views)]
+        rec.views = list(self.views)
+        if rec.agreement is not None and len(rows) == len(self.session.views):
+            rec.agreement = rec.agreement.subset(self.views)
+        if "aaa" in rec.report or self.is_aaa:
+            try:
+                rec.aaa = measure_aaa(*load_voxels(folder))
+            except OrganlabError as e:
+                rec.aaa_error = str(e)
+        return rec
 
 
 def _hashable(v):
