@@ -410,8 +410,10 @@ class Reconstruction:
         The colour threshold colouring used.
     timings : dict of str -> float
         Seconds per stage run (a kept stage: the time it took when it ran).
-    views : list of int or None
-        The session views reconstructed (None: all of them).
+    views : list of int
+        The indices of the views reconstructed (``Engine(views=...)``; every view by default).
+    coloring : dict or None
+        The colouring's figures (the report's ``coloring`` entry).
 
     A run stopped by ``until=`` leaves the fields of the later stages None.
     """
@@ -434,6 +436,7 @@ class Reconstruction:
     color_threshold: float | None = None
     timings: dict = dataclasses.field(default_factory=dict)
     views: list | None = None
+    coloring: dict | None = None
 
     @property
     def masks(self) -> list:
@@ -585,28 +588,47 @@ class Engine:
     max_memory : int, optional
         Bytes the voxel grid may take (default the memory available now;
         :func:`organlab.preflight.check_grid_memory`).
+    cameras : sequence of Camera, optional
+        The views' cameras, given: no calibration stage runs.
+    silhouettes : sequence of Silhouette, optional
+        The views' silhouettes, given: ``Settings.threshold`` does not apply.
+
+    :meth:`from_views` makes an engine of views without a session (the
+    carving tuner's): cameras and silhouettes given, the roi in the settings.
 
     Attributes
     ----------
-    session : Session
+    session : Session or None
     views : list of int
     computed : dict of str -> int
         How many times each stage ran (the rest came from the cache).
     """
 
-    def __init__(self, session: Session | str | Path, *, calibration: Any = None, recalibrate: bool = False,
+    def __init__(self, session: Session | str | Path | None, *, calibration: Any = None, recalibrate: bool = False,
                  images: Sequence[np.ndarray] | None = None, views: Sequence[int] | None = None,
-                 max_memory: int | None = None):
-        self.session = session if isinstance(session, Session) else load_session(session)
-        s = self.session
-        if not s.views:
-            raise SessionError(f"{s.json_path}: views: the session has no views to reconstruct (calibration-only session)")
-        self.views = list(range(len(s.views))) if views is None else [int(i) for i in views]
-        bad = [i for i in self.views if not 0 <= i < len(s.views)]
+                 max_memory: int | None = None, cameras: Sequence | None = None,
+                 silhouettes: Sequence[Silhouette] | None = None):
+        if session is None:
+            if cameras is None or silhouettes is None:
+                raise SettingsError("session", "is needed unless the cameras and the silhouettes are given")
+            self.session = None
+            n = len(cameras)
+        else:
+            self.session = session if isinstance(session, Session) else load_session(session)
+            s = self.session
+            if not s.views:
+                raise SessionError(f"{s.json_path}: views: the session has no views to reconstruct "
+                                   "(calibration-only session)")
+            n = len(s.views)
+        self.views = list(range(n)) if views is None else [int(i) for i in views]
+        bad = [i for i in self.views if not 0 <= i < n]
         if bad or not self.views:
-            raise SettingsError("views", f"must be indices of the session's {len(s.views)} views, got {list(views)!r}")
-        if images is not None and len(images) != len(self.views):
-            raise SettingsError("images", f"must be one per view: got {len(images)} for {len(self.views)} views")
+            raise SettingsError("views", f"must be indices of the {n} views, got {views!r}")
+        for what, given in (("images", images), ("cameras", cameras), ("silhouettes", silhouettes)):
+            if given is not None and len(given) != len(self.views):
+                raise SettingsError(what, f"must be one per view: got {len(given)} for {len(self.views)} views")
+        self._cameras = None if cameras is None else list(cameras)
+        self._silhouettes = None if silhouettes is None else list(silhouettes)
         self._calibration = calibration
         self._recalibrate = bool(recalibrate)
         self._images = None if images is None else list(images)
@@ -616,11 +638,23 @@ class Engine:
         self.computed = {name: 0 for name in STAGES}
         self.timings: dict[str, float] = {}
 
+    @classmethod
+    def from_views(cls, images: Sequence[np.ndarray] | None, silhouettes: Sequence[Silhouette], cameras: Sequence, *,
+                   max_memory: int | None = None) -> Engine:
+        """An engine of views without a session: the silhouettes and cameras given, ``Settings.roi`` needed.
+
+        ``images`` (one per view) are needed by colouring only.  Its runs have
+        no report (nothing of a session to write); the agreement is measured.
+        """
+        return cls(None, images=images, cameras=cameras, silhouettes=silhouettes, max_memory=max_memory)
+
     # ------------------------------------------------------------ what does not depend on the settings
     @property
     def images(self) -> list:
         """The views' images, read once (colouring needs them again)."""
         if self._images is None:
+            if self.session is None:
+                raise SettingsError("images", "are needed for colouring (method other than 'hull')")
             s = self.session
             self._images = [s.read(s.views[i].image, key=f"views[{i}].image") for i in self.views]
         return self._images
@@ -634,7 +668,9 @@ class Engine:
 
     @property
     def names(self) -> list:
-        """The views' image names, relative to the session folder."""
+        """The views' image names, relative to the session folder (``views[i]`` without a session)."""
+        if self.session is None:
+            return [f"views[{i}]" for i in self.views]
         return [self.session.relpath(self.session.views[i].image) for i in self.views]
 
     def cameras(self) -> list:
@@ -645,6 +681,8 @@ class Engine:
         """The box carved: ``settings.roi`` or the session's."""
         if settings.roi is not None:
             return tuple(tuple(float(v) for v in p) for p in settings.roi)
+        if self.session is None:
+            raise SettingsError("roi", "is needed: no session gives one")
         return (tuple(float(v) for v in self.session.roi_min), tuple(float(v) for v in self.session.roi_max))
 
     def grid(self, settings: Settings) -> VoxelGrid:
@@ -708,10 +746,12 @@ class Engine:
         return self._reconstruction(settings, out)
 
     def _preflight(self, settings):
-        s = self.session
+        if self._silhouettes is not None and settings.threshold is not None:
+            raise SettingsError("threshold", "does not apply: the silhouettes are given")
         lo, hi = self.roi(settings)
+        where = "the views" if self.session is None else str(self.session.json_path)
         check_grid_memory(lo, hi, settings.voxel_size, max_memory=self.max_memory, method=settings.method,
-                          tolerance=int(settings.tolerance), where=str(s.json_path))
+                          tolerance=int(settings.tolerance), where=where)
 
     def _stage(self, name, settings, clock, out=None, notify=None):
         key = self.key(name, settings)
@@ -735,6 +775,8 @@ class Engine:
 
     # ------------------------------------------------------------ the stages
     def _run_calibration(self, settings, clock, out, notify):
+        if self._cameras is not None:
+            return CalibrationStage(None, "given", list(self._cameras))
         bar = None
 
         def progress(done, total):
@@ -753,6 +795,8 @@ class Engine:
         return CalibrationStage(cal, how, [every[i] for i in self.views], seconds)
 
     def _run_silhouettes(self, settings, clock, out, notify):
+        if self._silhouettes is not None:
+            return list(self._silhouettes)
         bar = clock.bar("silhouettes")
         sils = self.silhouette_model.silhouettes(threshold=settings.threshold, progress=bar)
         bar.close()
@@ -770,8 +814,9 @@ class Engine:
         bar(len(cameras), len(cameras))
         bar.close()
         if not occupancy.any():
+            where = "the views" if self.session is None else self.session.json_path
             raise SessionError(
-                f"{self.session.json_path}: carving left no voxel: the silhouettes do not agree with the cameras "
+                f"{where}: carving left no voxel: the silhouettes do not agree with the cameras "
                 "(check the calibration, the roi and the threshold)"
             )
         return CarvingStage(grid, occupancy, field)
@@ -813,7 +858,7 @@ class Engine:
             steps["pixel_footprint_mm"] = footprint
             clock.check()
         aaa = error = None
-        if settings.measure or (settings.measure is None and is_aaa_session(self.session)):
+        if settings.measure or (settings.measure is None and self.is_aaa):
             try:
                 aaa = measure_aaa(surface_of, grid)
             except OrganlabError as e:
@@ -833,6 +878,8 @@ class Engine:
         names = self.names
         agr = view_agreement(surf.mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
         figures = AgreementFigures.from_agreement(agr, names)
+        if s is None:  # views without a session: nothing of a session to report
+            return ChecksStage(agr, figures, None)
         timings = {k: self.timings[k] for k in STAGES if k in self.timings and k != "checks"}
         report = _report(s, self.views, grid, occupancy, surf.mesh, cameras, cal, cal_stage.how, sils, timings,
                          settings)
@@ -893,14 +940,15 @@ class Engine:
             aaa_error=None if surf is None else surf.aaa_error,
             color_threshold=None if colored is None else colored.threshold,
             timings={k: self.timings[k] for k in STAGES if k in self.timings and k in out},
-            views=None if self.views == list(range(len(self.session.views))) else list(self.views),
+            views=list(self.views),
+            coloring=None if colored is None else colored.info,
         )
 
     # ------------------------------------------------------------ for the viewer
     @property
     def is_aaa(self) -> bool:
         """Whether the session's specimen is an AAA (measured by default: ``Settings.measure=None``)."""
-        return bool(is_aaa_session(self.session))
+        return self.session is not None and bool(is_aaa_session(self.session))
 
     def view_silhouette(self, j: int, threshold: float | None = None) -> Silhouette:
         """The silhouette of the engine's view ``j`` at a threshold (its automatic one when None)."""
