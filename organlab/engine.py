@@ -44,18 +44,18 @@ from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_t
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
 from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
-from .errors import OrganlabError, SessionError, SettingsError
+from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, check_grid_memory
 from .session import Session, load_session, write_json
-from .silhouette import Silhouette, SilhouetteModel
+from .silhouette import Silhouette, SilhouetteModel, silhouette
 from . import surface  # its writers through the module (tests replace them to interrupt a write)
 from .surface import (color_vertices, finish_surface, is_aaa_session, load_voxels, measure, measure_aaa, mesh_from_field,
                       read_ply)
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
-           "ChecksStage", "run", "pixel_footprint"]
+           "ChecksStage", "LiveHull", "run", "pixel_footprint"]
 
 METHODS = ("hull", "coloring", "space_carving")
 HULL_METHODS = ("subvoxel", "thesis")
@@ -995,6 +995,110 @@ class Engine:
             except OrganlabError as e:
                 rec.aaa_error = str(e)
         return rec
+
+
+class LiveHull:
+    """The hull carved view by view as views arrive: a capture, or a stream of views.
+
+    The progressive form of the carving stage (the thesis's test,
+    :class:`organlab.carving.ProgressiveCarver`); with a ``silhouette``
+    function it also finds each arriving image's silhouette.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+    tolerance : int
+        Views allowed to disagree before a voxel is carved.
+    silhouette : callable(image) -> Silhouette, optional
+        How an arriving image's silhouette is found (:meth:`add_image`).
+    camera0 : Camera, optional
+        The camera at table angle 0 (:meth:`for_capture`).
+
+    Examples
+    --------
+    >>> from organlab.synthetic import Sphere, default_camera, render_masks
+    >>> cams = [default_camera((160, 120)).at_table_angle(a) for a in (0, 90)]
+    >>> hull = LiveHull(VoxelGrid.from_roi((-40, -40, 0), (40, 40, 80), 4.0))
+    >>> for cam, cov in zip(cams, render_masks(Sphere(center=(0, 0, 40), radius=20), cams)):
+    ...     occ = hull.add(cov >= 0.5, cam)
+    >>> bool(occ.any()), hull.views
+    (True, 2)
+    """
+
+    def __init__(self, grid: VoxelGrid, *, tolerance: int = 0, silhouette: Callable[[np.ndarray], Silhouette] | None = None,
+                 camera0: Any = None):
+        self.grid = grid
+        self.camera0 = camera0
+        self._carver = ProgressiveCarver(grid, tolerance=tolerance)
+        self._silhouette = silhouette
+        self.views = 0
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        """The hull so far, ``grid.shape`` bool."""
+        return self._carver.occupancy
+
+    def add(self, mask: np.ndarray, camera: Any) -> np.ndarray:
+        """Carve with one more view's (H, W) bool mask; the hull so far."""
+        self.views += 1
+        return self._carver.add_view(mask, camera)
+
+    def add_image(self, image: np.ndarray, camera: Any) -> tuple:
+        """Find an arriving image's silhouette (when a ``silhouette`` function was given) and carve with it.
+
+        Returns
+        -------
+        silhouette : Silhouette or None
+        occupancy : (nx, ny, nz) bool or None
+            None without a silhouette.
+        """
+        if self._silhouette is None:
+            return None, None
+        sil = self._silhouette(image)
+        return sil, self.add(sil.mask, camera)
+
+    @staticmethod
+    def by_subtraction(background: np.ndarray, *, threshold: float | None = None,
+                       floor: float = 0.0) -> Callable[[np.ndarray], Silhouette]:
+        """The silhouette function of background subtraction against a model of the empty scene
+        (:func:`organlab.silhouette.silhouette`)."""
+        return lambda image: silhouette(image, background, threshold=threshold, floor=floor)
+
+    @classmethod
+    def for_capture(cls, session: Session | str | Path, *, voxel_size: float = 2.0, threshold: float | None = None,
+                    tolerance: int = 0) -> LiveHull:
+        """The live hull of a capture in progress, from what its session folder holds at the first view.
+
+        The camera at table angle 0 from the turntable calibration
+        (:func:`organlab.calibration.calibration_for`), the grid of the roi,
+        and each image's silhouette as ``organlab reconstruct`` finds it
+        (:class:`organlab.silhouette.SilhouetteModel`: background subtraction
+        with the frames' noise floor, or keying against the session's
+        ``backdrop``; a ``'border'`` backdrop is estimated from the image itself).
+
+        Raises
+        ------
+        CalibrationError
+            No turntable calibration to place the views.
+        """
+        s = session if isinstance(session, Session) else load_session(session)
+        Settings(voxel_size=voxel_size, threshold=threshold, tolerance=tolerance).validate()
+        cal, _ = calibration_for(s)
+        if cal.turntable is None:
+            raise CalibrationError(f"{s.json_path}: no turntable calibration to place the views "
+                                   "(capture with the board on the table)")
+        backdrop = getattr(s, "backdrop", None)
+        needs_frames = backdrop is None or backdrop.get("color") == "frames"
+        frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
+        find = None
+        if frames or not needs_frames:
+            def find(image):
+                model = SilhouetteModel([image], frames if needs_frames else None, backdrop=backdrop,
+                                        names=[f"{s.json_path}: the captured view"])
+                return model.silhouette(0, threshold=threshold)
+
+        return cls(VoxelGrid.from_session(s, voxel_size), tolerance=tolerance, silhouette=find,
+                   camera0=cal.turntable.camera)
 
 
 def _hashable(v):
