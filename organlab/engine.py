@@ -592,6 +592,9 @@ class Engine:
         The views' cameras, given: no calibration stage runs.
     silhouettes : sequence of Silhouette, optional
         The views' silhouettes, given: ``Settings.threshold`` does not apply.
+    mode, background : str
+        How the silhouettes are found (:class:`organlab.silhouette.SilhouetteModel`):
+        colour or grey difference, median or mean background model.
 
     :meth:`from_views` makes an engine of views without a session (the
     carving tuner's): cameras and silhouettes given, the roi in the settings.
@@ -607,7 +610,8 @@ class Engine:
     def __init__(self, session: Session | str | Path | None, *, calibration: Any = None, recalibrate: bool = False,
                  images: Sequence[np.ndarray] | None = None, views: Sequence[int] | None = None,
                  max_memory: int | None = None, cameras: Sequence | None = None,
-                 silhouettes: Sequence[Silhouette] | None = None):
+                 silhouettes: Sequence[Silhouette] | None = None, mode: str = "color", background: str = "median"):
+        self._model_options = {"mode": mode, "background": background}
         if session is None:
             if cameras is None or silhouettes is None:
                 raise SettingsError("session", "is needed unless the cameras and the silhouettes are given")
@@ -663,7 +667,8 @@ class Engine:
     def silhouette_model(self) -> SilhouetteModel:
         """The views prepared for silhouettes at any threshold (background or backdrop keying), built once."""
         if self._model is None:
-            self._model = SilhouetteModel.from_session(self.session, images=self.images, views=self.views)
+            self._model = SilhouetteModel.from_session(self.session, images=self.images, views=self.views,
+                                                       **self._model_options)
         return self._model
 
     @property
