@@ -23,21 +23,23 @@ import math
 import sys
 from pathlib import Path
 
-from .progress import NullProgress, ProgressBar
 from .agreement import model_mask
 from .calibration import calibrate
 from .capture import run_capture
 from .cliparser import OneLineParser as _Parser
-from .errors import OrganlabError
+from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
 from .pipeline import reconstruct, summary_table, write_outputs
 from .preflight import atomic_output_dir, check_output_dir, parse_memory
+from .progress import NullProgress, ProgressBar
 from .scaffold import init_session
 from .session import load_session
 from .surface import mesh_result
-from .synthetic import SimRig
-from .synthetic import main as synth_main
+from .synthetic import SimRig, main as synth_main
 from .viewer import CaptureViewer, SessionViewer
+
+#: Settings (organlab.engine.Settings) whose flag is not --NAME
+_FLAGS = {"finish": "--raw-surface", "measure": "--measure"}
 
 
 def _positive_float(text):
@@ -247,21 +249,10 @@ def _bars(quiet):
 def _reconstruct(a):
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
-    rec = reconstruct(
-        a.session,
-        voxel_size=a.voxel_size,
-        threshold=a.threshold,
-        method=a.method,
-        hull=a.hull,
-        color_threshold=a.color_threshold,
-        tolerance=a.tolerance,
-        calibration=a.calibration,
-        recalibrate=a.recalibrate,
-        progress=_bars(a.quiet),
-        max_memory=max_memory,
-        finish=not a.raw_surface,
-        measure=True if a.measure else None,
-    )
+    try:
+        rec = _run_reconstruct(a, max_memory)
+    except SettingsError as e:  # the library names its parameter; the user typed a flag
+        raise OrganlabError(e.for_flag(_FLAGS.get(e.parameter, f"--{e.parameter.replace('_', '-')}"))) from None
     with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
         paths = write_outputs(rec, tmp, atomic=False)
         if a.picture:
@@ -281,6 +272,24 @@ def _reconstruct(a):
     return 0
 
 
+def _run_reconstruct(a, max_memory):
+    return reconstruct(
+        a.session,
+        voxel_size=a.voxel_size,
+        threshold=a.threshold,
+        method=a.method,
+        hull=a.hull,
+        color_threshold=a.color_threshold,
+        tolerance=a.tolerance,
+        calibration=a.calibration,
+        recalibrate=a.recalibrate,
+        progress=_bars(a.quiet),
+        max_memory=max_memory,
+        finish=not a.raw_surface,
+        measure=True if a.measure else None,
+    )
+
+
 def _pictures(rec, folder, voxel_size):
     ref = rec.report.get("mesh_volume_error_pct")
     title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {voxel_size:g} mm"
@@ -288,7 +297,7 @@ def _pictures(rec, folder, voxel_size):
     out = {"picture": mesh_snapshot(rec.mesh, folder / "mesh.png", title=title)}
     if rec.report.get("agreement"):
         out["agreement"] = agreement_chart(rec.report, folder / "agreement.png")
-        worst = max(range(len(rec.cameras)), key=lambda i: rec.report["views"][i]["agreement"]["disagreement"])
+        worst = rec.agreement.worst  # the one ranking (organlab.engine.AgreementFigures)
         sil = rec.silhouettes[worst].coverage >= 0.5
         view = rec.session.views[worst]
         a = rec.report["views"][worst]["agreement"]

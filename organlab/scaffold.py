@@ -21,12 +21,11 @@ angles ``start + i * step``.
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
 from .errors import SessionError
-from .session import FORMAT, load_session
+from .session import FORMAT, load_session, save_session
 
 __all__ = ["IMAGE_SUFFIXES", "init_session"]
 
@@ -176,7 +175,7 @@ def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), squar
     doc["roi"] = {"min": roi[:3], "max": roi[3:]}
     doc["init_notes"] = notes  # readers ignore unknown keys; delete once checked
     backup = sj.read_bytes() if sj.exists() else None
-    sj.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    save_session(root, doc)
     try:
         load_session(root)
     except SessionError:

@@ -30,10 +30,12 @@ ORDER = list(FLOORS)
 TEST_DATA = {"synthetic", "datasets"}
 #: Units of the floors that another branch adds (organlab/engine.py: issue 19's engine helper).
 PLANNED = {"engine"}
-#: Modules excused, for now, from the function-local and underscore rules (cycles and floors hold for them too):
-#: the files issue 19's engine branch rewrites (organlab/pipeline.py over the engine, the viewer and the widgets
-#: as faces of it).  Remove each entry when that branch lands; the goal is an empty set.
-EXCEPTIONS = {"organlab.pipeline", "organlab.viewer", "organlab.widgets"}
+#: Modules excused, for now, from the function-local and underscore rules (cycles and floors hold for them too).
+#: Both are files of issue 19's engine branch, still importing inside functions when this branch merged it:
+#: organlab/viewer/__init__.py (a lazy __getattr__; its modules no longer import viser at the top, so the
+#: imports can move up) and organlab/widgets/_calibration.py (three imports of organlab.calibration).
+#: Remove each entry when fixed; the goal is an empty set.
+EXCEPTIONS = {"organlab.viewer", "organlab.widgets._calibration"}
 
 
 def _module_name(path):
@@ -108,7 +110,7 @@ def _where(module, line):
 
 
 def _excepted(module):
-    return any(module == e or module.startswith(e + ".") for e in EXCEPTIONS)
+    return module in EXCEPTIONS
 
 
 def test_every_unit_has_a_floor():
@@ -256,7 +258,7 @@ def test_the_rules_catch_a_bad_module(rule, tmp_path, monkeypatch):
 #: Packages whose every exported name must be annotated (viser's habit), with the names still pending:
 #: ``organlab``'s reconstruct and write_outputs live in pipeline.py, which the engine branch rewrites.
 ANNOTATED = {
-    "organlab": {"reconstruct", "write_outputs"},
+    "organlab": set(),
     "organlab.silhouette": set(),
     "organlab.carving": set(),
     "organlab.agreement": set(),

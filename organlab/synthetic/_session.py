@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..session import DEFAULT_PATTERN, DEFAULT_ROI, FORMAT, write_json
+from ..session import DEFAULT_PATTERN, DEFAULT_ROI, FORMAT, save_session, write_json
 from . import _hard, _render
 from ._boards import BOARD_MARGIN, default_camera, intrinsic_board_poses, render_board, turntable_board_pose
 from ._specimens import make_specimen
@@ -168,7 +168,7 @@ def make_session(
                    board_supersample=board_supersample, formats=(view_format, background_format, jpeg_quality))
     if hard:
         truth["hard"] = {"exposure_gains": [v["exposure_gain"] for v in views_truth], "jpeg_chroma": "4:2:0"}
-    write_json(out / "session.json", session)
+    save_session(out, session)
     write_json(out / "truth.json", truth)
     truth["session_json"] = session
     return truth
@@ -334,5 +334,5 @@ def with_true_cameras(session_dir: str | Path, dest: str | Path, *, step: int = 
     for view, true_view in zip(doc["views"], truth["views"]):
         view["pose"] = {"R": true_view["R"], "t": true_view["t"]}
     doc["views"] = doc["views"][:: int(step)]
-    write_json(dest / "session.json", doc)
+    save_session(dest, doc)
     return dest
