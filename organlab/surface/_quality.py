@@ -39,48 +39,46 @@ def nonmanifold_vertices(mesh):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    f = np.asarray(mesh.faces)
+    f = np.asarray(mesh.faces, dtype=np.int64)
     if len(f) == 0:
         return 0
-    nv = int(f.max()) + 1
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    fid = np.tile(np.arange(len(f)), 3)
-    und = np.sort(e, axis=1)
-    key = und[:, 0].astype(np.int64) * nv + und[:, 1]
-    order = np.argsort(key, kind="stable")
-    ks, fs = key[order], fid[order]
+    F = len(f)
+    key, order, _, _ = mesh._edges()
+    ks = key[order]
     same = ks[1:] == ks[:-1]
-    fa, fb = fs[:-1][same], fs[1:][same]
-    rows, cols = [], []
-    for v in np.divmod(ks[:-1][same], nv):  # both ends of each shared edge
-        # link the corners (3 * face + slot) of v in the two faces sharing the edge
-        rows.append(3 * fa + np.argmax(f[fa] == v[:, None], axis=1))
-        cols.append(3 * fb + np.argmax(f[fb] == v[:, None], axis=1))
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * len(f), 3 * len(f)))
-    _, fan = connected_components(g, directed=False)
-    fans = np.unique(np.stack([f.ravel(), fan], axis=1), axis=0)
-    return int((np.bincount(fans[:, 0], minlength=nv) > 1).sum())
+    ea, eb = order[:-1][same], order[1:][same]  # directed edges (slot * F + face) of consecutive faces on an edge
+    fa, sa = ea % F, ea // F
+    fb, sb = eb % F, eb // F
+    sa1, sb1 = (sa + 1) % 3, (sb + 1) % 3
+    # link the corners (3 * face + slot) of each end of the edge in the two faces
+    aligned = f[fa, sa] == f[fb, sb]  # both faces run the edge the same way (misoriented)
+    rows = np.concatenate([3 * fa + sa, 3 * fa + sa1])
+    cols = np.concatenate([3 * fb + np.where(aligned, sb, sb1), 3 * fb + np.where(aligned, sb1, sb)])
+    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * F, 3 * F))
+    n_fans, fan = connected_components(g, directed=False)
+    vertex_of_fan = np.empty(n_fans, dtype=np.int64)
+    vertex_of_fan[fan] = f.ravel()  # every corner of a fan is at the same vertex
+    return int((np.bincount(vertex_of_fan) > 1).sum())
 
 
 def boundary_loops(mesh):
     """Edge counts of the boundary loops (holes), sorted decreasing; ``[]`` for a closed mesh."""
-    f = np.asarray(mesh.faces)
+    f = np.asarray(mesh.faces, dtype=np.int64)
     if len(f) == 0:
         return []
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    und = np.sort(e, axis=1)
-    _, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
-    b = e[cnt[inv.ravel()] == 1]
-    if len(b) == 0:
+    _, order, starts, counts = mesh._edges()
+    e = order[starts[counts == 1]]  # the directed edges used by one face only
+    if len(e) == 0:
         return []
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    F = len(f)
+    a, b = f[e % F, e // F], f[e % F, (e // F + 1) % 3]
     nv = int(f.max()) + 1
-    g = coo_matrix((np.ones(len(b)), (b[:, 0], b[:, 1])), shape=(nv, nv))
+    g = coo_matrix((np.ones(len(e)), (a, b)), shape=(nv, nv))
     _, lab = connected_components(g, directed=False)
-    sizes = np.bincount(lab[b[:, 0]])
+    sizes = np.bincount(lab[a])
     return sorted((int(s) for s in sizes[sizes > 0]), reverse=True)
 
 
@@ -107,12 +105,17 @@ def _mesh_quality(mesh):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    f = np.asarray(mesh.faces)
+    f = np.asarray(mesh.faces, dtype=np.int64)
     b, nm, mis = mesh.edge_counts()
     ang = triangle_angles(mesh).min(axis=1) if len(f) else np.array([0.0])
     ar = aspect_ratios(mesh) if len(f) else np.array([np.inf])
     nv = len(mesh.vertices)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]]) if len(f) else np.zeros((0, 2), int)
+    if len(f):
+        _, order, starts, _ = mesh._edges()
+        u = order[starts]  # one directed edge per undirected edge
+        e = np.stack([f[u % len(f), u // len(f)], f[u % len(f), (u // len(f) + 1) % 3]], axis=1)
+    else:
+        e = np.zeros((0, 2), int)
     n_comp = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(nv, nv)), directed=False)[0]
     used = np.zeros(nv, bool)
     used[f.ravel()] = True
