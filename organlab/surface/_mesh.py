@@ -37,11 +37,16 @@ class Mesh:
     @property
     def volume(self):
         """Enclosed volume, mm^3 (signed sum of tetrahedra; > 0 when oriented outward)."""
+        cached = self.__dict__.get("_volume")
+        if cached is not None:
+            return cached
         v = self.vertices
         a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
         # centre the coordinates for numerical accuracy
         o = v.mean(axis=0) if len(v) else np.zeros(3)
-        return float(np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)).sum() / 6.0)
+        vol = float(np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)).sum() / 6.0)
+        object.__setattr__(self, "_volume", vol)  # cached: the mesh is immutable
+        return vol
 
     @property
     def area(self):
