@@ -81,7 +81,7 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     """
     from scipy.spatial import cKDTree
 
-    from ._quality import mesh_quality
+    from ._quality import _moved, mesh_quality
     from ._repair import repair_mesh
 
     tree = cKDTree(seeds)
@@ -92,4 +92,5 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     if q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]:
         return mesh, 0
     d, _ = tree.query(rep.vertices)
-    return Mesh(_laplace(rep.vertices, rep.faces, d < 1.5 * radius_mm, iterations), rep.faces), int((~keep).sum())
+    out = _moved(Mesh(_laplace(rep.vertices, rep.faces, d < 1.5 * radius_mm, iterations), rep.faces), rep)
+    return out, int((~keep).sum())

@@ -39,15 +39,14 @@ def _face_figures(mesh):
 
     One pass over the faces' edge vectors (the quality figures of :func:`mesh_quality`).
     """
-    t = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces)]
-    d = t[:, [1, 2, 0]] - t  # edge i runs from corner i to corner i + 1
-    sq = np.einsum("fij,fij->fi", d, d)
-    ln = np.sqrt(sq)
-    area = 0.5 * np.linalg.norm(np.cross(d[:, 0], d[:, 2]), axis=1)
-    prev = [2, 0, 1]
+    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    d = (p1 - p0, p2 - p1, p0 - p2)  # edge i runs from corner i to corner i + 1
+    ln = np.stack([np.sqrt(np.einsum("ij,ij->i", x, x)) for x in d], axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(d[0], d[2]), axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         # the angle at corner i, between edge i and the reversed edge i - 1; the smallest has the largest cosine
-        c = -np.einsum("fij,fij->fi", d, d[:, prev]) / (ln * ln[:, prev])
+        c = np.stack([-np.einsum("ij,ij->i", d[i], d[i - 1]) for i in range(3)], axis=1) / (ln * ln[:, [2, 0, 1]])
         c = np.nan_to_num(c, nan=1.0).max(axis=1)
         r = ln.max(axis=1) * ln.sum(axis=1) / (4 * np.sqrt(3) * area)
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0))), np.where(area > 0, r, np.inf), area
@@ -62,7 +61,11 @@ def nonmanifold_vertices(mesh):
     if len(f) == 0:
         return 0
     F = len(f)
-    key, order, _, _ = mesh._edges()
+    key, order, starts, counts = mesh._edges()
+    if (counts == 2).all():
+        fast = _fans_closed(f, order, starts)
+        if fast is not None:
+            return fast
     ks = key[order]
     same = ks[1:] == ks[:-1]
     ea, eb = order[:-1][same], order[1:][same]  # directed edges (slot * F + face) of consecutive faces on an edge
@@ -78,6 +81,31 @@ def nonmanifold_vertices(mesh):
     vertex_of_fan = np.empty(n_fans, dtype=np.int64)
     vertex_of_fan[fan] = f.ravel()  # every corner of a fan is at the same vertex
     return int((np.bincount(vertex_of_fan) > 1).sum())
+
+
+def _fans_closed(f, order, starts):
+    """Non-manifold vertices of a closed, edge-manifold mesh by following each vertex's fan; None if misoriented.
+
+    Around vertex ``a`` of corner (face, slot), its edge ``a -> b`` leads to the other face on that
+    edge, where ``a`` is the corner after the twin edge ``b -> a``: a permutation of the corners whose
+    cycles are the fans.  Each corner gets the smallest corner of its cycle by pointer doubling.
+    """
+    F = len(f)
+    i, j = order[starts], order[starts + 1]  # the two directed edges (slot * F + face) of each edge
+    if (f[i % F, i // F] == f[j % F, j // F]).any():
+        return None  # both faces run an edge the same way
+    twin = np.empty(3 * F, dtype=np.int64)
+    twin[i], twin[j] = j, i
+    e = np.arange(3 * F)
+    tw = twin[(e % 3) * F + e // 3]  # corner c = 3 * face + slot: its outgoing edge's twin
+    nxt = 3 * (tw % F) + (tw // F + 1) % 3
+    label = e.copy()
+    deg = int(np.bincount(f.ravel()).max())
+    for _ in range(max(1, int(np.ceil(np.log2(deg))) + 1)):
+        label = np.minimum(label, label[nxt])
+        nxt = nxt[nxt]
+    reps = f.ravel()[label == e]  # one corner per fan, at its vertex
+    return int((np.bincount(reps) > 1).sum())
 
 
 def boundary_loops(mesh):
@@ -120,13 +148,36 @@ def mesh_quality(mesh):
     return dict(q)
 
 
+def _moved(mesh, like):
+    """``mesh`` has the faces of ``like`` (vertices moved: smoothing, an offset): its topology figures
+    and edge table are taken from ``like``, only the geometric ones are computed.  Returns ``mesh``."""
+    if mesh.faces is like.faces or np.array_equal(mesh.faces, like.faces):
+        table = like.__dict__.get("_edge_table")
+        if table is not None:
+            object.__setattr__(mesh, "_edge_table", table)
+        if like in _CACHE and mesh not in _CACHE:
+            _CACHE[mesh] = {**_CACHE[like], **_geometry(mesh)}
+    return mesh
+
+
+def _geometry(mesh):
+    ang, ar, area = _face_figures(mesh) if len(mesh.faces) else (np.array([0.0]), np.array([np.inf]), np.zeros(1))
+    return {
+        "volume_mm3": mesh.volume,
+        "area_mm2": float(area.sum()),
+        "min_angle_deg": float(ang.min()),
+        "faces_below_20deg": int((ang < 20).sum()),
+        "max_aspect_ratio": float(ar.max()),
+        "mean_aspect_ratio": float(ar[np.isfinite(ar)].mean()) if np.isfinite(ar).any() else float("inf"),
+    }
+
+
 def _mesh_quality(mesh):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     f = np.asarray(mesh.faces, dtype=np.int64)
     b, nm, mis = mesh.edge_counts()
-    ang, ar, area = _face_figures(mesh) if len(f) else (np.array([0.0]), np.array([np.inf]), np.zeros(1))
     nv = len(mesh.vertices)
     if len(f):
         _, order, starts, _ = mesh._edges()
@@ -146,10 +197,5 @@ def _mesh_quality(mesh):
         "nonmanifold_vertices": nonmanifold_vertices(mesh),
         "holes": len(boundary_loops(mesh)),
         "components": int(n_comp - (~used).sum()),
-        "volume_mm3": mesh.volume,
-        "area_mm2": float(area.sum()),
-        "min_angle_deg": float(ang.min()),
-        "faces_below_20deg": int((ang < 20).sum()),
-        "max_aspect_ratio": float(ar.max()),
-        "mean_aspect_ratio": float(ar[np.isfinite(ar)].mean()) if np.isfinite(ar).any() else float("inf"),
+        **_geometry(mesh),
     }

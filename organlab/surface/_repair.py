@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._mesh import Mesh
-from ._quality import boundary_loops, mesh_quality
+from ._quality import _moved, boundary_loops, mesh_quality
 
 
 def _to_ms(mesh):
@@ -103,6 +103,10 @@ def repair_mesh(mesh, *, speck_mm=3.0, max_rounds=4):
     defects = _defects(mesh, speck_mm)
     if not defects:  # already closed, manifold, oriented, without specks (the usual marching-cubes surface)
         return mesh, _step("repair", mesh, mesh, holes_closed=0, hole_edges=[], rounds=0)
+    if defects == {"specks"}:  # closed and manifold, with small separate pieces (finer voxels): dropped here
+        out = _drop_specks(mesh, speck_mm)
+        if out is not None and not _defects(out, speck_mm):
+            return out, _step("repair", mesh, out, holes_closed=0, hole_edges=[], rounds=1)
     ms = _to_ms(mesh)
     holes = []
     rounds = 0
@@ -151,6 +155,33 @@ def _defects(mesh, speck_mm):
     return out
 
 
+def _drop_specks(mesh, speck_mm):
+    """The mesh without the connected pieces whose bounding-box diagonal is below ``speck_mm``; None if none is left.
+
+    As pymeshlab's ``meshing_remove_connected_component_by_diameter`` on a closed, manifold mesh
+    (pieces connected by edges; the vertices of the pieces left are renumbered in order).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
+    nv = len(v)
+    g = coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())), shape=(nv, nv))
+    n, lab = connected_components(g, directed=False)
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, lab, v)
+    np.maximum.at(hi, lab, v)
+    big = np.linalg.norm(hi - lo, axis=1) >= speck_mm
+    keep = big[lab[f[:, 0]]]
+    if not keep.any():
+        return None
+    used = np.zeros(nv, dtype=bool)
+    used[f[keep].ravel()] = True
+    new = np.cumsum(used) - 1
+    return Mesh(v[used], new[f[keep]])
+
+
 def smooth_mesh(mesh, *, iterations=10, lambda_=0.5, mu=-0.53):
     """Taubin smoothing (shrink-free): relaxes the marching-cubes staircase.
 
@@ -187,7 +218,7 @@ def smooth_mesh(mesh, *, iterations=10, lambda_=0.5, mu=-0.53):
     for _ in range(int(iterations)):
         v += lambda_ * (w @ v - v)
         v += mu * (w @ v - v)
-    out = _oriented(Mesh(v, mesh.faces))
+    out = _moved(_oriented(Mesh(v, mesh.faces)), mesh)
     return out, _step("smooth", mesh, out, iterations=int(iterations))
 
 
@@ -217,18 +248,34 @@ def remesh_mesh(mesh, target_mm, *, iterations=10, feature_deg=60.0, min_angle=2
     _check_mesh(mesh)
     if not target_mm > 0:
         raise ValueError(f"remesh target edge length must be > 0 mm, got {target_mm}")
+    from ._quality import _face_figures
+
+    # every flag given at each call (pymeshlab keeps no state between calls, but the two kinds of pass
+    # must not depend on it); checksurfdist=False: its test of every collapse and flip against the input
+    # surface took 60 % of the time (1 mm sample: 3.4 s -> 0.7 s) for the same volume and angles
+    flags = dict(targetlen=pymeshlab.PureValue(float(target_mm)), featuredeg=float(feature_deg), adaptive=False,
+                 checksurfdist=False, splitflag=True, collapseflag=True, swapflag=True, smoothflag=True,
+                 reprojectflag=True)
     ms = _to_ms(mesh)
-    passes, best = 0, -1.0
+    out, passes, best = mesh, 0, -1.0
     for passes in range(1, max_passes + 1):
-        # checksurfdist=False: its test of every collapse and flip against the input surface took 60 % of the
-        # time (1 mm sample: 3.4 s -> 0.7 s) for the same faces, volume and angles (1 % of the box: 2 mm)
-        ms.meshing_isotropic_explicit_remeshing(
-            targetlen=pymeshlab.PureValue(float(target_mm)), iterations=int(iterations), featuredeg=float(feature_deg),
-            checksurfdist=False,
-        )
+        if passes == 1:
+            ms.meshing_isotropic_explicit_remeshing(iterations=int(iterations), selectedonly=False, **flags)
+        else:
+            # later passes remesh only the faces within 3 rings of those still below min_angle
+            # (0.5 mm sample: one face of 76 000, 0.7 s instead of 4 s for a whole pass, 23.3 degrees)
+            ms = pymeshlab.MeshSet()
+            bad = (_face_figures(out)[0] < min_angle).astype(np.float64)
+            ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(out.vertices, dtype=np.float64),
+                                       face_matrix=np.ascontiguousarray(out.faces, dtype=np.int32),
+                                       f_scalar_array=bad))
+            ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
+            for _ in range(3):
+                ms.apply_selection_dilatation()
+            ms.meshing_isotropic_explicit_remeshing(iterations=3, selectedonly=True, **flags)
         out = _oriented(_from_ms(ms))
         angle = mesh_quality(out)["min_angle_deg"]
-        # done, or a pass that gained less than a degree (a pass on a fine mesh takes tens of seconds)
+        # done, or a pass that gained less than a degree
         if angle >= min_angle or angle < best + 1.0:
             break
         best = angle
@@ -250,7 +297,7 @@ def _restore_volume(mesh, volume):
         gap = volume - out.volume
         if abs(gap) <= 1e-6 * abs(volume):
             break
-        out = Mesh(out.vertices + (gap / out.area) * vertex_normals(out), out.faces)
+        out = _moved(Mesh(out.vertices + (gap / out.area) * vertex_normals(out), out.faces), out)
     return out
 
 
