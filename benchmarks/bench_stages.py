@@ -16,7 +16,16 @@ memory from its board images when that file is missing (as
 * ``hull``: :func:`organlab.carving.hull_field` with ``sparse=True`` (the
   narrow-band field; the voxel size matters only here and below);
 * ``surface``: :meth:`organlab.carving.BandField.mesh` (marching cubes on the
-  band only) and the occupancy.
+  band only) and the occupancy;
+* ``finish``: :func:`organlab.surface.finish_surface` of that mesh (repair,
+  smoothing, folds, isotropic remeshing; the cameras' pixel footprint as its
+  shortest edge, as ``reconstruct`` passes it);
+* ``aaa``: :func:`organlab.surface.measure_aaa` on the band field;
+* ``command``: the whole default ``organlab reconstruct SESSION --out DIR
+  --voxel-size VS`` (true cameras: a copy by
+  :func:`organlab.synthetic.with_true_cameras`, no calibration) in a new
+  process each time: its wall time and peak resident set (VmHWM at its end),
+  best of ``--command-repeat``.
 
 Time: best of ``--repeat`` runs after one warm-up (numba compilation and cache
 loading excluded; best-of because the machine is shared), wall and CPU (all
@@ -29,13 +38,18 @@ surface gives 4x per halving, one that grows with the volume 8x.
 Usage::
 
     .venv/bin/python benchmarks/bench_stages.py [--session sample_sessions/aaa_phantom]
-        [--voxel-sizes 2 1 0.5 0.25] [--repeat 3]
+        [--voxel-sizes 2 1 0.5 0.25] [--repeat 3] [--command-repeat 1] [--no-command]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -43,6 +57,34 @@ from _common import session_cameras, vm_mb  # benchmarks/_common.py (scripts run
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# the whole command in a new process: its wall time and its own peak resident set
+_COMMAND = """
+import json, sys, time
+t0 = time.perf_counter()
+from organlab.cli import main
+code = main(["reconstruct", sys.argv[1], "--out", sys.argv[2], "--voxel-size", sys.argv[3]])
+wall = time.perf_counter() - t0
+hwm = [int(l.split()[1]) / 1024 for l in open("/proc/self/status") if l.startswith("VmHWM:")]
+rep = json.load(open(sys.argv[2] + "/report.json"))
+print("BENCH", json.dumps({"code": code, "wall": wall, "peak_mb": hwm[0] if hwm else float("nan"),
+                           "timings": rep.get("timings_s", {})}))
+"""
+
+
+def run_command(session_dir, vs, repeat):
+    """Best-of-``repeat`` wall time, peak MB and stage timings of ``organlab reconstruct`` in a new process."""
+    best = None
+    for _ in range(repeat):
+        with tempfile.TemporaryDirectory() as out:
+            r = subprocess.run([sys.executable, "-c", _COMMAND, str(session_dir), out + "/res", f"{vs:g}"],
+                               capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        line = [x for x in r.stdout.splitlines() if x.startswith("BENCH ")]
+        if r.returncode or not line:
+            raise RuntimeError(f"organlab reconstruct at {vs} mm failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
+        res = json.loads(line[-1][6:])
+        if best is None or res["wall"] < best["wall"]:
+            best = res
+    return best
 
 
 def _reset_peak():
@@ -80,12 +122,16 @@ def main():
     ap.add_argument("--session", default=str(ROOT / "sample_sessions" / "aaa_phantom"))
     ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[2.0, 1.0, 0.5, 0.25])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--command-repeat", type=int, default=1, help="runs of the whole command per voxel size")
+    ap.add_argument("--no-command", action="store_true", help="skip the whole command")
     a = ap.parse_args()
 
     from organlab import carving
     from organlab.grid import VoxelGrid
+    from organlab.pipeline import pixel_footprint
     from organlab.session import load_session
     from organlab.silhouette import SilhouetteModel, silhouettes
+    from organlab.surface import finish_surface, measure_aaa
 
     session = load_session(a.session)
     cameras, source = session_cameras(session)
@@ -119,13 +165,30 @@ def main():
         field, *rh = measure(lambda: carving.hull_field(coverages, cameras, grid, sparse=True), a.repeat)
         mesh, *rs = measure(field.mesh, a.repeat)
         _, *ro = measure(field.occupancy, 1)
+        foot = pixel_footprint(cameras, grid)
+        (fin, rep), *rf = measure(lambda: finish_surface(mesh, voxel_size=vs, min_edge_mm=foot), a.repeat)
+        aaa, *ra = measure(lambda: measure_aaa(field, grid), a.repeat)
         shape = "x".join(map(str, grid.shape))
         rows.append(("hull", f"{vs:g}", f"{shape} ({grid.n_voxels / 1e6:.1f} M)", *rh))
-        rows.append(("surface", f"{vs:g}", f"{len(mesh.vertices)} vertices, {mesh.volume / 1e3:.2f} cm3", *rs))
+        rows.append(("surface", f"{vs:g}", f"{len(mesh.faces)} faces, {mesh.volume / 1e3:.2f} cm3", *rs))
         rows.append(("occupancy", f"{vs:g}", f"band {field.n_band_voxels / 1e6:.2f} M voxels, "
                      f"{field.nbytes / 1e6:.1f} MB", *ro))
-        per_voxel[vs] = {"hull": rh, "surface": rs}
-        del field, mesh
+        q = rep["final"]
+        rows.append(("finish", f"{vs:g}", f"{q['faces']} faces, {q['min_angle_deg']:.1f} deg, "
+                     f"{'closed' if rep['watertight'] else 'OPEN'}, {q['volume_mm3'] / 1e3:.2f} cm3", *rf))
+        rows.append(("aaa", f"{vs:g}", f"max diameter {aaa.max_diameter_mm:.1f} mm, "
+                     f"{len(aaa.arc_mm)} sections", *ra))
+        per_voxel[vs] = {"hull": rh, "surface": rs, "finish": rf, "aaa": ra}
+        del field, mesh, fin, aaa
+
+    commands = {}
+    if not a.no_command:
+        from organlab.synthetic import with_true_cameras
+
+        with tempfile.TemporaryDirectory() as tmp:
+            true_session = with_true_cameras(a.session, Path(tmp) / "session")
+            for vs in a.voxel_sizes:
+                commands[vs] = run_command(true_session, vs, a.command_repeat)
 
     w = max(len(r[2]) for r in rows)
     print(f"{'stage':<12} {'voxel':>6}  {'grid / result':<{w}} {'wall s':>8} {'CPU s':>8} {'peak MB':>8} {'added MB':>9}")
@@ -134,15 +197,25 @@ def main():
     sizes = sorted(per_voxel, reverse=True)
     print("\ngrowth per halving of the voxel (time ratio wall, CPU; added-memory ratio)")
     for a_, b_ in zip(sizes, sizes[1:]):
-        for st in ("hull", "surface"):
+        for st in ("hull", "surface", "finish", "aaa"):
             ra, rb = per_voxel[a_][st], per_voxel[b_][st]
             mem = f"{rb[3] / ra[3]:5.2f}x added memory" if ra[3] >= 1.0 else "added memory < 1 MB before"
             print(f"  {st:<8} {a_:g} -> {b_:g} mm: {rb[0] / ra[0]:5.2f}x wall, {rb[1] / max(ra[1], 1e-9):5.2f}x CPU, {mem}")
+    if commands:
+        print(f"\nwhole default command (organlab reconstruct, true cameras, new process; best of {a.command_repeat})")
+        print(f"{'voxel':>6} {'wall s':>8} {'peak MB':>8}   stage timings from its report (s)")
+        for vs, c in commands.items():
+            st = ", ".join(f"{k} {v:.2f}" for k, v in c["timings"].items())
+            print(f"{vs:>6g} {c['wall']:8.2f} {c['peak_mb']:8.0f}   {st}")
+        vss = list(commands)
+        for a_, b_ in zip(vss, vss[1:]):
+            print(f"  {a_:g} -> {b_:g} mm: {commands[b_]['wall'] / commands[a_]['wall']:5.2f}x wall, "
+                  f"{commands[b_]['peak_mb'] / commands[a_]['peak_mb']:5.2f}x peak")
     if 1.0 in per_voxel:
         sil = next(r for r in rows if r[0] == "silhouettes")
-        h, s = per_voxel[1.0]["hull"], per_voxel[1.0]["surface"]
-        print(f"\n1 mm stages, silhouettes + hull + surface: {sil[3] + h[0] + s[0]:.3f} s wall "
-              f"({sil[4] + h[1] + s[1]:.3f} s CPU)")
+        st = [per_voxel[1.0][k] for k in ("hull", "surface", "finish", "aaa")]
+        print(f"\n1 mm stages, silhouettes + hull + surface + finish + aaa: {sil[3] + sum(x[0] for x in st):.3f} s wall "
+              f"({sil[4] + sum(x[1] for x in st):.3f} s CPU)")
 
 
 if __name__ == "__main__":

@@ -110,7 +110,7 @@ def _centreline(inside, vs, smooth_mm, step_mm):
     hi = np.argwhere(inside).max(axis=0) + 1
     sub = inside[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     dist = ndimage.distance_transform_edt(np.pad(sub, 1), sampling=vs)[1:-1, 1:-1, 1:-1]
-    cost = np.where(sub, 1.0 / np.maximum(dist, 1e-3) ** 2, 1e6)
+    cost = np.where(sub, 1.0 / np.maximum(dist, 1e-3) ** 2, np.inf)  # outside: never entered (nor explored)
     # main axis: the principal direction of the lumen, oriented so its largest component is positive
     idx = np.argwhere(sub).astype(np.float64)
     _, v = np.linalg.eigh(np.cov((idx - idx.mean(axis=0)).T))
@@ -141,20 +141,10 @@ def _centreline(inside, vs, smooth_mm, step_mm):
     return c, u, t, r, dist.max()
 
 
-def _section(sample, level, c, t, half, px):
-    """Contour (M, 3) of the section, world frame, its Feret and equivalent diameters; ``sample``: a FieldSampler."""
-    from scipy.spatial import ConvexHull
-    from scipy.spatial.distance import pdist
+def _closed_around(img, level, centre):
+    """The smallest closed ``level`` contour of ``img`` around ``centre`` (1, 2) and its area (pixels); None if none."""
     from skimage.measure import find_contours, points_in_poly
 
-    a = np.eye(3)[np.argmin(np.abs(t))]
-    e1 = np.cross(t, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(t, e1)
-    g = np.arange(-half, half + px / 2, px)
-    U, V = np.meshgrid(g, g, indexing="ij")
-    img = sample(c + U[..., None] * e1 + V[..., None] * e2)
-    centre = np.array([[(len(g) - 1) / 2, (len(g) - 1) / 2]])
     best = None
     for ct in find_contours(img, level):
         if len(ct) < 4 or np.abs(ct[0] - ct[-1]).max() > 1e-9 or not points_in_poly(centre, ct)[0]:
@@ -162,14 +152,88 @@ def _section(sample, level, c, t, half, px):
         area = 0.5 * abs(np.dot(ct[:, 0], np.roll(ct[:, 1], 1)) - np.dot(ct[:, 1], np.roll(ct[:, 0], 1)))
         if best is None or area < best[1]:
             best = (ct, area)
-    if best is None:
-        return None, np.nan, np.nan
-    ct, area = best
-    xy = ct * px - half
-    h = xy[ConvexHull(xy).vertices]
-    feret = float(pdist(h).max())
-    world = c + xy[:, :1] * e1 + xy[:, 1:] * e2
-    return world, feret, 2.0 * np.sqrt(area * px * px / np.pi)
+    return best
+
+
+class _Plane:
+    """Pixels ``g x g`` (mm, about ``c``) of the plane through ``c`` perpendicular to ``t``."""
+
+    def __init__(self, c, t, half, px):
+        a = np.eye(3)[np.argmin(np.abs(t))]
+        e1 = np.cross(t, a)
+        self.e1 = e1 / np.linalg.norm(e1)
+        self.e2 = np.cross(t, self.e1)
+        self.c, self.half, self.px = c, half, px
+        self.g = np.arange(-half, half + px / 2, px)
+
+    def points(self, i, j):
+        """World points (len(i), len(j), 3) of pixels ``g[i] x g[j]``."""
+        U, V = np.meshgrid(self.g[i], self.g[j], indexing="ij")
+        return self.c + U[..., None] * self.e1 + V[..., None] * self.e2
+
+    def result(self, best):
+        """Contour (M, 3), Feret and equivalent diameters from ``(contour in pixels, area in pixels)``."""
+        from scipy.spatial import ConvexHull
+        from scipy.spatial.distance import pdist
+
+        if best is None:
+            return None, np.nan, np.nan
+        ct, area = best
+        xy = ct * self.px - self.half
+        h = xy[ConvexHull(xy).vertices]
+        feret = float(pdist(h).max())
+        world = self.c + xy[:, :1] * self.e1 + xy[:, 1:] * self.e2
+        return world, feret, 2.0 * np.sqrt(area * self.px * self.px / np.pi)
+
+
+def _sample_many(sample, point_sets):
+    """``sample`` of several point arrays (..., 3) in one call (one pass of the sampler's threads)."""
+    if not point_sets:
+        return []
+    flat = np.concatenate([p.reshape(-1, 3) for p in point_sets])
+    vals = sample(flat)
+    out, k = [], 0
+    for p in point_sets:
+        n = int(np.prod(p.shape[:-1]))
+        out.append(vals[k : k + n].reshape(p.shape[:-1]))
+        k += n
+    return out
+
+
+def _sections(sample, level, planes, coarse=4):
+    """Each plane's section (see :meth:`_Plane.result`); None contour where no closed one is around the centre.
+
+    Every plane is sampled every ``coarse`` pixels first; the contour is then traced at full
+    resolution in the window around the coarse one only (2 coarse pixels of margin: the same
+    pixels, so the same contour as on the whole plane, which is sampled when the contour reaches
+    the margin or the coarse sampling found none).  All planes share each sampling call.
+    """
+    full = [np.arange(len(p.g)) for p in planes]
+    centres = [np.array([[(len(p.g) - 1) / 2] * 2]) for p in planes]
+    ci = [np.arange(0, len(p.g), coarse) for p in planes]
+    rough = _sample_many(sample, [p.points(i, i) for p, i in zip(planes, ci)])
+    rough = [_closed_around(img, level, c / coarse) for img, c in zip(rough, centres)]
+    boxes = {}
+    for k, (p, r) in enumerate(zip(planes, rough)):
+        if r is not None:
+            n = len(p.g)
+            lo = np.maximum(np.floor(r[0].min(axis=0) * coarse).astype(int) - 2 * coarse, 0)
+            hi = np.minimum(np.ceil(r[0].max(axis=0) * coarse).astype(int) + 2 * coarse, n - 1)
+            boxes[k] = (lo, hi)
+    fine = _sample_many(sample, [planes[k].points(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+                                 for k, (lo, hi) in boxes.items()])
+    best = [None] * len(planes)
+    for (k, (lo, hi)), img in zip(boxes.items(), fine):
+        sub = _closed_around(img, level, centres[k] - lo)
+        if sub is not None:
+            ct, area = sub
+            n = len(planes[k].g)
+            inside = ((lo == 0) | (ct.min(axis=0) > 1)) & ((hi == n - 1) | (ct.max(axis=0) < hi - lo - 1))
+            if inside.all():
+                best[k] = (ct + lo, area)
+    for k in [k for k in range(len(planes)) if best[k] is None]:
+        best[k] = _closed_around(sample(planes[k].points(full[k], full[k])), level, centres[k])
+    return [p.result(b) for p, b in zip(planes, best)]
 
 
 def measure_aaa(
@@ -259,13 +323,11 @@ def measure_aaa(
     px = max(0.5 * vs, min(vs, 0.25)) if pixel_mm is None else float(pixel_mm)
     c, arc, t, r, dmax = _centreline(inside, cvs, smooth_mm, step_mm)
     c = c + corigin
-    sections = []
-    for k in range(len(c)):
-        # a window of 3 wall distances; the largest one when the section leaves it (oblique cuts)
-        sec = _section(sample, level, c[k], t[k], 3.0 * r[k] + 4 * vs, px)
-        if sec[0] is None:
-            sec = _section(sample, level, c[k], t[k], 3.0 * dmax + 4 * vs, px)
-        sections.append(sec)
+    # a window of 3 wall distances; the largest one when the section leaves it (oblique cuts)
+    sections = _sections(sample, level, [_Plane(c[k], t[k], 3.0 * r[k] + 4 * vs, px) for k in range(len(c))])
+    again = [k for k, sec in enumerate(sections) if sec[0] is None]
+    for k, sec in zip(again, _sections(sample, level, [_Plane(c[k], t[k], 3.0 * dmax + 4 * vs, px) for k in again])):
+        sections[k] = sec
     params = {"level": level, "step_mm": step_mm, "smooth_mm": smooth_mm, "pixel_mm": px, "sac_factor": sac_factor,
               "centreline_voxel_mm": cvs}
     return _measures(c, arc, sections, inside, corigin, cvs, sac_factor, params)

@@ -27,13 +27,14 @@ def fold_edges(mesh, fold_deg):
     (E, 2) int64
         Vertex indices of the fold edges.
     """
-    v, f = mesh.vertices, np.asarray(mesh.faces)
+    v, f = mesh.vertices, np.asarray(mesh.faces, dtype=np.int64)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-300
-    und = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1).astype(np.int64)
-    key = und[:, 0] * (len(v) + 1) + und[:, 1]
-    order = np.argsort(key, kind="stable")
-    fid = np.tile(np.arange(len(f)), 3)[order]
-    same = key[order][1:] == key[order][:-1]
-    cos = np.einsum("ij,ij->i", n[fid[:-1][same]], n[fid[1:][same]])
-    return und[order][:-1][same][cos < np.cos(np.radians(fold_deg))]
+    key, order, _, _ = mesh._edges()  # directed edge i: slot i // F, face i % F
+    ks = key[order]
+    same = ks[1:] == ks[:-1]
+    ea, eb = order[:-1][same], order[1:][same]
+    F = len(f)
+    cos = np.einsum("ij,ij->i", n[ea % F], n[eb % F])
+    bad = ea[cos < np.cos(np.radians(fold_deg))]
+    return np.sort(np.stack([f[bad % F, bad // F], f[bad % F, (bad // F + 1) % 3]], axis=1), axis=1)

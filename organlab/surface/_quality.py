@@ -36,53 +36,98 @@ def aspect_ratios(mesh):
     return np.where(area > 0, r, np.inf)
 
 
+def _face_figures(mesh):
+    """Smallest angle (degrees), aspect ratio (see :func:`aspect_ratios`) and area of every face, each ``(F,)``.
+
+    One pass over the faces' edge vectors (the quality figures of :func:`mesh_quality`).
+    """
+    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    d = (p1 - p0, p2 - p1, p0 - p2)  # edge i runs from corner i to corner i + 1
+    ln = np.stack([np.sqrt(np.einsum("ij,ij->i", x, x)) for x in d], axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(d[0], d[2]), axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # the angle at corner i, between edge i and the reversed edge i - 1; the smallest has the largest cosine
+        c = np.stack([-np.einsum("ij,ij->i", d[i], d[i - 1]) for i in range(3)], axis=1) / (ln * ln[:, [2, 0, 1]])
+        c = np.nan_to_num(c, nan=1.0).max(axis=1)
+        r = ln.max(axis=1) * ln.sum(axis=1) / (4 * np.sqrt(3) * area)
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0))), np.where(area > 0, r, np.inf), area
+
+
 def nonmanifold_vertices(mesh):
     """Number of vertices whose faces do not form one edge-connected fan (bow-ties)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    f = np.asarray(mesh.faces)
+    f = np.asarray(mesh.faces, dtype=np.int64)
     if len(f) == 0:
         return 0
-    nv = int(f.max()) + 1
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    fid = np.tile(np.arange(len(f)), 3)
-    und = np.sort(e, axis=1)
-    key = und[:, 0].astype(np.int64) * nv + und[:, 1]
-    order = np.argsort(key, kind="stable")
-    ks, fs = key[order], fid[order]
+    F = len(f)
+    key, order, starts, counts = mesh._edges()
+    if (counts == 2).all():
+        fast = _fans_closed(f, order, starts)
+        if fast is not None:
+            return fast
+    ks = key[order]
     same = ks[1:] == ks[:-1]
-    fa, fb = fs[:-1][same], fs[1:][same]
-    rows, cols = [], []
-    for v in np.divmod(ks[:-1][same], nv):  # both ends of each shared edge
-        # link the corners (3 * face + slot) of v in the two faces sharing the edge
-        rows.append(3 * fa + np.argmax(f[fa] == v[:, None], axis=1))
-        cols.append(3 * fb + np.argmax(f[fb] == v[:, None], axis=1))
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
-    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * len(f), 3 * len(f)))
-    _, fan = connected_components(g, directed=False)
-    fans = np.unique(np.stack([f.ravel(), fan], axis=1), axis=0)
-    return int((np.bincount(fans[:, 0], minlength=nv) > 1).sum())
+    ea, eb = order[:-1][same], order[1:][same]  # directed edges (slot * F + face) of consecutive faces on an edge
+    fa, sa = ea % F, ea // F
+    fb, sb = eb % F, eb // F
+    sa1, sb1 = (sa + 1) % 3, (sb + 1) % 3
+    # link the corners (3 * face + slot) of each end of the edge in the two faces
+    aligned = f[fa, sa] == f[fb, sb]  # both faces run the edge the same way (misoriented)
+    rows = np.concatenate([3 * fa + sa, 3 * fa + sa1])
+    cols = np.concatenate([3 * fb + np.where(aligned, sb, sb1), 3 * fb + np.where(aligned, sb1, sb)])
+    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * F, 3 * F))
+    n_fans, fan = connected_components(g, directed=False)
+    vertex_of_fan = np.empty(n_fans, dtype=np.int64)
+    vertex_of_fan[fan] = f.ravel()  # every corner of a fan is at the same vertex
+    return int((np.bincount(vertex_of_fan) > 1).sum())
+
+
+def _fans_closed(f, order, starts):
+    """Non-manifold vertices of a closed, edge-manifold mesh by following each vertex's fan; None if misoriented.
+
+    Around vertex ``a`` of corner (face, slot), its edge ``a -> b`` leads to the other face on that
+    edge, where ``a`` is the corner after the twin edge ``b -> a``: a permutation of the corners whose
+    cycles are the fans.  Each corner gets the smallest corner of its cycle by pointer doubling.
+    """
+    F = len(f)
+    i, j = order[starts], order[starts + 1]  # the two directed edges (slot * F + face) of each edge
+    if (f[i % F, i // F] == f[j % F, j // F]).any():
+        return None  # both faces run an edge the same way
+    twin = np.empty(3 * F, dtype=np.int64)
+    twin[i], twin[j] = j, i
+    e = np.arange(3 * F)
+    tw = twin[(e % 3) * F + e // 3]  # corner c = 3 * face + slot: its outgoing edge's twin
+    nxt = 3 * (tw % F) + (tw // F + 1) % 3
+    label = e.copy()
+    deg = int(np.bincount(f.ravel()).max())
+    for _ in range(max(1, int(np.ceil(np.log2(deg))) + 1)):
+        label = np.minimum(label, label[nxt])
+        nxt = nxt[nxt]
+    reps = f.ravel()[label == e]  # one corner per fan, at its vertex
+    return int((np.bincount(reps) > 1).sum())
 
 
 def boundary_loops(mesh: Mesh) -> list[int]:
     """Edge counts of the boundary loops (holes), sorted decreasing; ``[]`` for a closed mesh."""
-    f = np.asarray(mesh.faces)
+    f = np.asarray(mesh.faces, dtype=np.int64)
     if len(f) == 0:
         return []
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    und = np.sort(e, axis=1)
-    _, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
-    b = e[cnt[inv.ravel()] == 1]
-    if len(b) == 0:
+    _, order, starts, counts = mesh._edges()
+    e = order[starts[counts == 1]]  # the directed edges used by one face only
+    if len(e) == 0:
         return []
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    F = len(f)
+    a, b = f[e % F, e // F], f[e % F, (e // F + 1) % 3]
     nv = int(f.max()) + 1
-    g = coo_matrix((np.ones(len(b)), (b[:, 0], b[:, 1])), shape=(nv, nv))
+    g = coo_matrix((np.ones(len(e)), (a, b)), shape=(nv, nv))
     _, lab = connected_components(g, directed=False)
-    sizes = np.bincount(lab[b[:, 0]])
+    sizes = np.bincount(lab[a])
     return sorted((int(s) for s in sizes[sizes > 0]), reverse=True)
 
 
@@ -105,16 +150,43 @@ def mesh_quality(mesh: Mesh) -> dict:
     return dict(q)
 
 
+def _moved(mesh, like):
+    """``mesh`` has the faces of ``like`` (vertices moved: smoothing, an offset): its topology figures
+    and edge table are taken from ``like``, only the geometric ones are computed.  Returns ``mesh``."""
+    if mesh.faces is like.faces or np.array_equal(mesh.faces, like.faces):
+        table = like.__dict__.get("_edge_table")
+        if table is not None:
+            object.__setattr__(mesh, "_edge_table", table)
+        if like in _CACHE and mesh not in _CACHE:
+            _CACHE[mesh] = {**_CACHE[like], **_geometry(mesh)}
+    return mesh
+
+
+def _geometry(mesh):
+    ang, ar, area = _face_figures(mesh) if len(mesh.faces) else (np.array([0.0]), np.array([np.inf]), np.zeros(1))
+    return {
+        "volume_mm3": mesh.volume,
+        "area_mm2": float(area.sum()),
+        "min_angle_deg": float(ang.min()),
+        "faces_below_20deg": int((ang < 20).sum()),
+        "max_aspect_ratio": float(ar.max()),
+        "mean_aspect_ratio": float(ar[np.isfinite(ar)].mean()) if np.isfinite(ar).any() else float("inf"),
+    }
+
+
 def _mesh_quality(mesh):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    f = np.asarray(mesh.faces)
+    f = np.asarray(mesh.faces, dtype=np.int64)
     b, nm, mis = mesh.edge_counts()
-    ang = triangle_angles(mesh).min(axis=1) if len(f) else np.array([0.0])
-    ar = aspect_ratios(mesh) if len(f) else np.array([np.inf])
     nv = len(mesh.vertices)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]]) if len(f) else np.zeros((0, 2), int)
+    if len(f):
+        _, order, starts, _ = mesh._edges()
+        u = order[starts]  # one directed edge per undirected edge
+        e = np.stack([f[u % len(f), u // len(f)], f[u % len(f), (u // len(f) + 1) % 3]], axis=1)
+    else:
+        e = np.zeros((0, 2), int)
     n_comp = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(nv, nv)), directed=False)[0]
     used = np.zeros(nv, bool)
     used[f.ravel()] = True
@@ -127,10 +199,5 @@ def _mesh_quality(mesh):
         "nonmanifold_vertices": nonmanifold_vertices(mesh),
         "holes": len(boundary_loops(mesh)),
         "components": int(n_comp - (~used).sum()),
-        "volume_mm3": mesh.volume,
-        "area_mm2": mesh.area,
-        "min_angle_deg": float(ang.min()),
-        "faces_below_20deg": int((ang < 20).sum()),
-        "max_aspect_ratio": float(ar.max()),
-        "mean_aspect_ratio": float(ar[np.isfinite(ar)].mean()) if np.isfinite(ar).any() else float("inf"),
+        **_geometry(mesh),
     }

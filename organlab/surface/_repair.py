@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import OrganlabError
 from ._folds import fold_edges
 from ._mesh import Mesh
-from ._quality import boundary_loops, mesh_quality, triangle_angles
+from ._quality import _face_figures, _moved, boundary_loops, mesh_quality, triangle_angles
 from ._voronoi import vertex_normals
 
 
@@ -105,10 +105,26 @@ def repair_mesh(mesh: Mesh, *, speck_mm: float = 3.0, max_rounds: int = 4) -> tu
         ``volume_change_pct`` and the quality before and after.
     """
     _check_mesh(mesh)
+    defects = _defects(mesh, speck_mm)
+    if not defects:  # already closed, manifold, oriented, without specks (the usual marching-cubes surface)
+        return mesh, _step("repair", mesh, mesh, holes_closed=0, hole_edges=[], rounds=0)
+    if defects == {"specks"}:  # closed and manifold, with small separate pieces (finer voxels): dropped here
+        out = _drop_specks(mesh, speck_mm)
+        if out is not None and not _defects(out, speck_mm):
+            return out, _step("repair", mesh, out, holes_closed=0, hole_edges=[], rounds=1)
     ms = _to_ms(mesh)
     holes = []
     rounds = 0
     out = mesh
+    if defects <= {"holes", "unreferenced"}:  # only holes (a cut, see _folds): closing them is the whole repair
+        holes = boundary_loops(mesh)
+        if "unreferenced" in defects:
+            ms.meshing_remove_unreferenced_vertices()
+        ms.meshing_close_holes(maxholesize=int(max(holes)) + 1, newfaceselected=False)
+        out = _oriented(_from_ms(ms))
+        if not _defects(out, speck_mm):
+            return out, _step("repair", mesh, out, holes_closed=len(holes), hole_edges=holes, rounds=1)
+        ms, holes, out = _to_ms(mesh), [], mesh
     for rounds in range(1, max_rounds + 1):
         holes += _repair_once(ms, speck_mm)
         out = _oriented(_from_ms(ms))
@@ -117,6 +133,58 @@ def repair_mesh(mesh: Mesh, *, speck_mm: float = 3.0, max_rounds: int = 4) -> tu
             break
     rec = _step("repair", mesh, out, holes_closed=len(holes), hole_edges=holes, rounds=rounds)
     return out, rec
+
+
+def _defects(mesh, speck_mm):
+    """What :func:`repair_mesh` would change: a set of ``'holes'``, ``'nonmanifold'``, ``'misoriented'``,
+    ``'unreferenced'``, ``'duplicates'``, ``'null'``, ``'specks'`` (empty: nothing)."""
+    q = mesh_quality(mesh)
+    out = set()
+    if q["boundary_edges"]:
+        out.add("holes")
+    if q["nonmanifold_edges"] or q["nonmanifold_vertices"]:
+        out.add("nonmanifold")
+    if q["misoriented_edges"]:
+        out.add("misoriented")
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if q["vertices"] != len(v):
+        out.add("unreferenced")
+    order = np.lexsort(v.T)
+    if (np.diff(v[order], axis=0) == 0).all(axis=1).any():
+        out.add("duplicates")
+    t = v[f]
+    if not np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).all():
+        out.add("null")
+    if q["components"] > 1 or np.linalg.norm(np.ptp(v, axis=0)) < speck_mm:
+        out.add("specks")  # the pymeshlab filter decides which of several pieces go
+    return out
+
+
+def _drop_specks(mesh, speck_mm):
+    """The mesh without the connected pieces whose bounding-box diagonal is below ``speck_mm``; None if none is left.
+
+    As pymeshlab's ``meshing_remove_connected_component_by_diameter`` on a closed, manifold mesh
+    (pieces connected by edges; the vertices of the pieces left are renumbered in order).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
+    nv = len(v)
+    g = coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())), shape=(nv, nv))
+    n, lab = connected_components(g, directed=False)
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, lab, v)
+    np.maximum.at(hi, lab, v)
+    big = np.linalg.norm(hi - lo, axis=1) >= speck_mm
+    keep = big[lab[f[:, 0]]]
+    if not keep.any():
+        return None
+    used = np.zeros(nv, dtype=bool)
+    used[f[keep].ravel()] = True
+    new = np.cumsum(used) - 1
+    return Mesh(v[used], new[f[keep]])
 
 
 def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: float = -0.53) -> tuple[Mesh, dict]:
@@ -133,10 +201,29 @@ def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: f
     -------
     Mesh, dict
     """
+    from scipy.sparse import coo_matrix, diags
+
     _check_mesh(mesh)
-    ms = _to_ms(mesh)
-    ms.apply_coord_taubin_smoothing(lambda_=lambda_, mu=mu, stepsmoothnum=int(iterations))
-    out = _oriented(_from_ms(ms))
+    if mesh.edge_counts()[0]:  # open: pymeshlab's smoothing moves the border vertices along the border only
+        ms = _to_ms(mesh)
+        ms.apply_coord_taubin_smoothing(lambda_=lambda_, mu=mu, stepsmoothnum=int(iterations))
+        out = _oriented(_from_ms(ms))
+        return out, _step("smooth", mesh, out, iterations=int(iterations))
+    # closed: the uniform Laplacian (the mean of the edge neighbours) that pymeshlab's
+    # apply_coord_taubin_smoothing applies, as a sparse matrix (1 mm sample: the same vertices
+    # within 5e-8 mm, 20 ms instead of 130 ms)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    _, order, starts, _ = mesh._edges()
+    u = order[starts]
+    a, b = f[u % len(f), u // len(f)], f[u % len(f), (u // len(f) + 1) % 3]
+    nv = len(mesh.vertices)
+    adj = coo_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(nv, nv)).tocsr()
+    w = diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1.0)) @ adj
+    v = np.array(mesh.vertices, dtype=np.float64)
+    for _ in range(int(iterations)):
+        v += lambda_ * (w @ v - v)
+        v += mu * (w @ v - v)
+    out = _moved(_oriented(Mesh(v, mesh.faces)), mesh)
     return out, _step("smooth", mesh, out, iterations=int(iterations))
 
 
@@ -167,18 +254,35 @@ def remesh_mesh(mesh: Mesh, target_mm: float, *, iterations: int = 10, feature_d
     _check_mesh(mesh)
     if not target_mm > 0:
         raise ValueError(f"remesh target edge length must be > 0 mm, got {target_mm}")
+    # every flag given at each call (pymeshlab keeps no state between calls, but the two kinds of pass
+    # must not depend on it); checksurfdist=False: its test of every collapse and flip against the input
+    # surface took 60 % of the time (1 mm sample: 3.4 s -> 0.7 s) for the same volume and angles
+    flags = dict(targetlen=pymeshlab.PureValue(float(target_mm)), featuredeg=float(feature_deg), adaptive=False,
+                 checksurfdist=False, splitflag=True, collapseflag=True, swapflag=True, smoothflag=True,
+                 reprojectflag=True)
     ms = _to_ms(mesh)
-    passes, best = 0, -1.0
+    out, passes, best = mesh, 0, -1.0
     for passes in range(1, max_passes + 1):
-        ms.meshing_isotropic_explicit_remeshing(
-            targetlen=pymeshlab.PureValue(float(target_mm)), iterations=int(iterations), featuredeg=float(feature_deg)
-        )
-        angle = mesh_quality(_from_ms(ms))["min_angle_deg"]
-        # done, or a pass that gained less than a degree (a pass on a fine mesh takes tens of seconds)
+        if passes == 1:
+            ms.meshing_isotropic_explicit_remeshing(iterations=int(iterations), selectedonly=False, **flags)
+        else:
+            # later passes remesh only the faces within 3 rings of those still below min_angle
+            # (0.5 mm sample: one face of 76 000, 0.7 s instead of 4 s for a whole pass, 23.3 degrees)
+            ms = pymeshlab.MeshSet()
+            bad = (_face_figures(out)[0] < min_angle).astype(np.float64)
+            ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(out.vertices, dtype=np.float64),
+                                       face_matrix=np.ascontiguousarray(out.faces, dtype=np.int32),
+                                       f_scalar_array=bad))
+            ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
+            for _ in range(3):
+                ms.apply_selection_dilatation()
+            ms.meshing_isotropic_explicit_remeshing(iterations=3, selectedonly=True, **flags)
+        out = _oriented(_from_ms(ms))
+        angle = mesh_quality(out)["min_angle_deg"]
+        # done, or a pass that gained less than a degree
         if angle >= min_angle or angle < best + 1.0:
             break
         best = angle
-    out = _oriented(_from_ms(ms))
     return out, _step("remesh", mesh, out, target_mm=float(target_mm), passes=passes)
 
 
@@ -195,7 +299,7 @@ def _restore_volume(mesh, volume):
         gap = volume - out.volume
         if abs(gap) <= 1e-6 * abs(volume):
             break
-        out = Mesh(out.vertices + (gap / out.area) * vertex_normals(out), out.faces)
+        out = _moved(Mesh(out.vertices + (gap / out.area) * vertex_normals(out), out.faces), out)
     return out
 
 
@@ -401,4 +505,5 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     if q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]:
         return mesh, 0
     d, _ = tree.query(rep.vertices)
-    return Mesh(_laplace(rep.vertices, rep.faces, d < 1.5 * radius_mm, iterations), rep.faces), int((~keep).sum())
+    out = _moved(Mesh(_laplace(rep.vertices, rep.faces, d < 1.5 * radius_mm, iterations), rep.faces), rep)
+    return out, int((~keep).sum())

@@ -148,9 +148,8 @@ def vertex_normals(mesh: Mesh) -> np.ndarray:
     """Area-weighted outward unit normals at the vertices, ``(V, 3)``."""
     v, f = mesh.vertices, mesh.faces
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
+    idx = np.asarray(f).T.ravel()  # the faces' normals summed at their corners' vertices
+    n = np.stack([np.bincount(idx, weights=np.tile(fn[:, k], 3), minlength=len(v)) for k in range(3)], axis=1)
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
