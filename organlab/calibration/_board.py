@@ -30,7 +30,7 @@ def _orientable(size):
     return nx % 2 == 1 and ny % 2 == 0
 
 
-def board_points(pattern):
+def board_points(pattern: Pattern) -> np.ndarray:
     """Inner corners of the board in the board frame.
 
     Corner ``(i, j)`` (``i`` along ``inner_corners[0]``, black end to white
@@ -246,7 +246,7 @@ def _detect_all(images, names, pattern, *, need_orientation, progress):
     return corners, rejected
 
 
-def detect_board(image, pattern, *, require_orientation=False):
+def detect_board(image: np.ndarray, pattern: Pattern, *, require_orientation: bool = False) -> np.ndarray | None:
     """Find the checkerboard's inner corners, sub-pixel, in board order.
 
     Detection: OpenCV's ``findChessboardCorners`` (adaptive threshold), with

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..camera import Camera
 from ..errors import CalibrationError
+from ..session import Pattern
 from ._board import _check_pattern, _detect_all, board_points
 from ._common import (
     REJECT_FACTOR,
@@ -62,15 +64,15 @@ class IntrinsicCalibration:
     fixed: tuple = ()
 
     @property
-    def image_size(self):
+    def image_size(self) -> tuple[int, int]:
         return self.camera.image_size
 
     @property
-    def uncertainty(self):
+    def uncertainty(self) -> dict[str, np.ndarray]:
         """Three standard deviations (Bouguet's toolbox's "+/-" convention), same keys as ``std``."""
         return {k: 3.0 * np.asarray(v) for k, v in self.std.items()}
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         """JSON-ready: the ``camera`` entry of ``calibration.json``."""
         d = self.camera.intrinsics_dict()
         d.update(
@@ -94,7 +96,7 @@ class IntrinsicCalibration:
         )
         return d
 
-    def summary(self):
+    def summary(self) -> str:
         """Bouguet-style text: every parameter with its 3-sigma uncertainty."""
         K, u = self.camera.K, self.uncertainty
         kc = ", ".join(f"{a:.5f}" for a in self.camera.dist)
@@ -180,18 +182,18 @@ def _refine_with_skew(obj, pts, K, dist, rv, tv, fix_k3):
 
 
 def calibrate_intrinsics(
-    images,
-    pattern,
+    images: Sequence[np.ndarray],
+    pattern: Pattern,
     *,
-    image_size,
-    names=None,
-    estimate_skew=False,
-    fix_k3=True,
-    reject_factor=REJECT_FACTOR,
-    reject_floor_px=REJECT_FLOOR_PX,
-    min_images=3,
-    progress=None,
-):
+    image_size: tuple[int, int],
+    names: Sequence[str] | None = None,
+    estimate_skew: bool = False,
+    fix_k3: bool = True,
+    reject_factor: float = REJECT_FACTOR,
+    reject_floor_px: float = REJECT_FLOOR_PX,
+    min_images: int = 3,
+    progress: Callable[[int, int], object] | None = None,
+) -> IntrinsicCalibration:
     """Intrinsic calibration (Bouguet's model) from images of a checkerboard.
 
     Parameters
@@ -259,16 +261,16 @@ def calibrate_intrinsics(
 
 
 def fit_intrinsics(
-    corners,
-    pattern,
+    corners: Mapping[str, np.ndarray | None],
+    pattern: Pattern,
     *,
-    image_size,
-    estimate_skew=False,
-    fix_k3=True,
-    reject_factor=REJECT_FACTOR,
-    reject_floor_px=REJECT_FLOOR_PX,
-    min_images=3,
-):
+    image_size: tuple[int, int],
+    estimate_skew: bool = False,
+    fix_k3: bool = True,
+    reject_factor: float = REJECT_FACTOR,
+    reject_floor_px: float = REJECT_FLOOR_PX,
+    min_images: int = 3,
+) -> IntrinsicCalibration:
     """The intrinsic fit of :func:`calibrate_intrinsics` on detected corners.
 
     Parameters

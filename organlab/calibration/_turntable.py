@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..camera import Camera, rot_z
 from ..errors import CalibrationError
+from ..session import Pattern
 from ._board import _check_pattern, _detect_all, _orientable, board_points
 from ._common import (
     FLAG_FLOOR_PX,
@@ -63,35 +65,35 @@ class TurntableCalibration:
     corners: dict = field(repr=False, default_factory=dict)
 
     @property
-    def R_cam(self):
+    def R_cam(self) -> np.ndarray:
         """World to camera rotation at table angle 0, (3, 3)."""
         return self.camera.R
 
     @property
-    def t_cam(self):
+    def t_cam(self) -> np.ndarray:
         """World to camera translation at table angle 0, (3,) mm."""
         return self.camera.t
 
     @property
-    def axis_direction_cam(self):
+    def axis_direction_cam(self) -> np.ndarray:
         """The table axis (+Z, up) in the camera frame at angle 0, unit (3,)."""
         return self.camera.R[:, 2].copy()
 
     @property
-    def axis_point_cam(self):
+    def axis_point_cam(self) -> np.ndarray:
         """Where the axis meets the board's top surface, camera frame, mm (3,)."""
         return self.camera.t.copy()
 
     @property
-    def camera_center_mm(self):
+    def camera_center_mm(self) -> np.ndarray:
         """Camera centre at angle 0, world frame, mm (3,)."""
         return self.camera.center
 
-    def view_camera(self, angle_deg):
+    def view_camera(self, angle_deg: float) -> Camera:
         """The camera of a view at table angle ``angle_deg``."""
         return self.camera.at_table_angle(angle_deg)
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         """JSON-ready: the ``turntable`` entry of ``calibration.json``."""
         c = self.camera.center
         dist_axis = float(np.hypot(c[0], c[1]))
@@ -225,16 +227,16 @@ def _distinct_angles(angles):
 
 
 def calibrate_turntable(
-    images,
-    angles_deg,
-    camera,
-    pattern,
+    images: Sequence[np.ndarray],
+    angles_deg: Sequence[float],
+    camera: Camera,
+    pattern: Pattern,
     *,
-    names=None,
-    flag_factor=REJECT_FACTOR,
-    flag_floor_px=FLAG_FLOOR_PX,
-    progress=None,
-):
+    names: Sequence[str] | None = None,
+    flag_factor: float = REJECT_FACTOR,
+    flag_floor_px: float = FLAG_FLOOR_PX,
+    progress: Callable[[int, int], object] | None = None,
+) -> TurntableCalibration:
     """Camera pose at table angle 0 and the table axis, one joint fit.
 
     The board lies on the table, printed side up; one image per table angle.
@@ -322,7 +324,8 @@ def calibrate_turntable(
     return tt
 
 
-def fit_turntable(corners, angles_deg, camera, pattern, *, flag_factor=REJECT_FACTOR, flag_floor_px=FLAG_FLOOR_PX):
+def fit_turntable(corners: Mapping[str, np.ndarray | None], angles_deg: Sequence[float], camera: Camera, pattern: Pattern,
+                  *, flag_factor: float = REJECT_FACTOR, flag_floor_px: float = FLAG_FLOOR_PX) -> TurntableCalibration:
     """The joint turntable fit of :func:`calibrate_turntable` on detected corners.
 
     Parameters
