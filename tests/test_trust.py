@@ -274,7 +274,9 @@ def test_init_writes_the_samples_session(tmp_path, capsys):
     for p in sorted((SAMPLE / "views").iterdir())[:3]:
         shutil.copy(p, flat / f"img{int(p.stem) // 10}.jpg")
     assert main(["init", str(flat), "--step", "-120"]) == 2
-    _one_line_error(capsys, "session.json", "no intrinsics")
+    # the fix named, not a session.json that init has just removed (issue 25)
+    line = _one_line_error(capsys, str(flat), "no cameras", "--cameras FILE", "board images")
+    assert "session.json" not in line
     assert not (flat / "session.json").exists()
 
 

@@ -34,10 +34,12 @@ reconstruction should use.  The check figures are drawn by :func:`organlab.figur
 
 Private modules: ``_board`` (board geometry and corner detection), ``_intrinsics``,
 ``_turntable``, ``_result`` (the :class:`Calibration` type, its file form, session glue),
-``_common`` (thresholds, geometry, input checks).
+``_common`` (thresholds, geometry, input checks), ``_formats`` (cameras of other tools in and out:
+:func:`read_cameras`, :func:`write_cameras`).
 """
 
 from ._board import board_points, detect_board
+from ._formats import CAMERA_FORMATS, CameraFile, camera_format, export_cameras, read_cameras, write_cameras
 from ._intrinsics import IntrinsicCalibration, calibrate_intrinsics, fit_intrinsics
 from ._result import Calibration, calibrate, calibration_for, needs_calibration, session_fingerprint
 from ._turntable import TurntableCalibration, calibrate_turntable, fit_turntable
@@ -56,4 +58,10 @@ __all__ = [
     "fit_intrinsics",
     "calibrate_turntable",
     "fit_turntable",
+    "CAMERA_FORMATS",
+    "CameraFile",
+    "camera_format",
+    "export_cameras",
+    "read_cameras",
+    "write_cameras",
 ]
