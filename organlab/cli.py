@@ -313,7 +313,7 @@ def _reconstruct(a):
 
 
 def _pictures(rec, folder, voxel_size):
-    from .agreement import model_mask
+    from .agreement import model_mask, worst_views
     from .figures import agreement_chart, agreement_overlay, mesh_snapshot
 
     ref = rec.report.get("mesh_volume_error_pct")
@@ -322,7 +322,7 @@ def _pictures(rec, folder, voxel_size):
     out = {"picture": mesh_snapshot(rec.mesh, folder / "mesh.png", title=title)}
     if rec.report.get("agreement"):
         out["agreement"] = agreement_chart(rec.report, folder / "agreement.png")
-        worst = max(range(len(rec.cameras)), key=lambda i: rec.report["views"][i]["agreement"]["disagreement"])
+        worst = worst_views([v["agreement"] for v in rec.report["views"]])[0]  # the report's ranking
         sil = rec.silhouettes[worst].coverage >= 0.5
         view = rec.session.views[worst]
         a = rec.report["views"][worst]["agreement"]

@@ -278,7 +278,7 @@ def reconstruct(
     report.update(extra)
     if coloring_info is not None:
         report["coloring"] = coloring_info
-    _add_checks(report, session, grid, mesh, cameras, sils, cal)
+    _add_checks(report, session, grid, mesh, cameras, sils, cal, raw_mesh)
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal, raw_mesh, aaa)
 
 
@@ -341,12 +341,13 @@ def _angle_suggestions(session, grid, sils, cal, agr, names):
     return suggest_angles(table, [v.angle_deg for v in session.views], sils, bad, grid, names=names)
 
 
-def _add_checks(report, session, grid, mesh, cameras, sils, cal):
+def _add_checks(report, session, grid, mesh, cameras, sils, cal, raw_mesh=None):
     """Trust checks into the report (issue 15): view agreement, what loading corrected."""
     from .agreement import suggestion_text, view_agreement
 
     names = [session.relpath(v.image) for v in session.views]
-    agr = view_agreement(mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
+    agr = view_agreement(mesh, cameras, sils, voxel_size=grid.voxel_size, names=names, hull_mesh=raw_mesh,
+                         turntable=[v.pose is None for v in session.views])
     for row, a in zip(report["views"], agr.views):
         row["agreement"] = a
     report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
@@ -503,7 +504,7 @@ def summary_table(report):
         rows.append(("turntable RMS", f"{report['turntable_rms_px']:.3f} px"))
     if report.get("agreement"):
         worst = [(r["image"], r["agreement"]) for r in report["views"] if r["image"] in report["agreement"]["worst_views"]]
-        worst.sort(key=lambda x: -x[1]["disagreement"])
+        worst.sort(key=lambda x: report["agreement"]["worst_views"].index(x[0]))  # the report's ranking (worst_views)
         rows.append(("worst views", ", ".join(f"{n} (IoU {a['iou']:.3f}, {100 * a['disagreement']:.2f} % unexplained)" for n, a in worst[:2])))
     for k, v in report["timings_s"].items():
         rows.append((f"time {k}", f"{v:.2f} s"))
