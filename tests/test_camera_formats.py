@@ -137,6 +137,38 @@ def test_a_bad_colmap_model_is_one_line_naming_the_line(cams, imgs, where, needl
     assert "\n" not in msg and where in msg and needle in msg, msg
 
 
+def test_bad_bouguet_and_opencv_files_are_one_line_naming_the_line(tmp_path):
+    cams = _cameras()
+    m = tmp_path / "Calib_Results.m"
+    write_cameras(m, cams, NAMES, format="bouguet")
+    text = m.read_text()
+    fc_line = next(i for i, ln in enumerate(text.splitlines(), start=1) if ln.startswith("fc = "))
+    m.write_text(text.replace("fc = [ ", "fc = [ NaN ; ", 1).replace(" ; 404", " 404", 1))
+    with pytest.raises(CalibrationError, match=rf"Calib_Results.m, line {fc_line}: fc: not finite"):
+        read_cameras(m)
+    m.write_text(text.replace("fc = [ ", "fc = [ -", 1))
+    with pytest.raises(CalibrationError, match=rf"Calib_Results.m, line {fc_line}: focal length fc must be > 0"):
+        read_cameras(m)
+    rc_line = next(i for i, ln in enumerate(text.splitlines(), start=1) if ln.startswith("Rc_2 = "))
+    lines = text.splitlines()
+    lines[rc_line - 1] = "Rc_2 = [ 1 , 0 , 0 ; 0 , 1 , 0.1 ; 0 , 0 , 1 ];"
+    m.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CalibrationError, match=rf"Calib_Results.m, line {rc_line}: Rc_2 is not a rotation matrix"):
+        read_cameras(m)
+    y = tmp_path / "c.yml"
+    write_cameras(y, cams, NAMES, format="opencv")
+    import cv2
+
+    fs = cv2.FileStorage(str(tmp_path / "nan.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 320)
+    fs.write("image_height", 240)
+    fs.write("camera_matrix", np.array([[np.nan, 0, 160], [0, 400, 120], [0, 0, 1.0]]))
+    fs.write("distortion_coefficients", np.zeros((5, 1)))
+    fs.release()
+    with pytest.raises(CalibrationError, match=r"nan.yml, line \d+: camera_matrix must be finite"):
+        read_cameras(tmp_path / "nan.yml")
+
+
 def test_opencv_extrinsic_parameters_and_a_wrong_image_size(tmp_path):
     """OpenCV's calibration sample writes extrinsic_parameters (N x 6, rvec | tvec) without names."""
     import cv2

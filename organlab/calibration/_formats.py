@@ -485,9 +485,27 @@ def _write_colmap(folder, cameras, names):
 _M_ASSIGN = re.compile(r"^\s*(Rc|Tc|omc)_(\d+)\s*=\s*\[(.*)\]\s*;?\s*$")
 
 
+_M_INTRINSIC = re.compile(r"^\s*(fc|cc|kc|alpha_c|nx|ny)\s*=\s*(.*?)\s*;?\s*$")
+
+
+def _check_bouguet_intrinsics(path):
+    """Finite numbers, fc > 0 and integer nx, ny, checked line by line (the toolbox's reader takes NaN)."""
+    for lineno, ln in enumerate(_text_lines(path), start=1):
+        m = _M_INTRINSIC.match(ln.split("%", 1)[0])
+        if not m:
+            continue
+        key, body = m.group(1), m.group(2).strip("[] ")
+        vals = _floats(body.replace(";", " ").replace(",", " ").split(), path, lineno, key)
+        if key == "fc" and not np.all(vals > 0):
+            _fail(path, lineno, f"focal length fc must be > 0, got {vals.tolist()}")
+        if key in ("nx", "ny") and not (vals.size == 1 and vals[0] == int(vals[0]) and vals[0] > 0):
+            _fail(path, lineno, f"{key} (image size) must be a positive integer, got {body}")
+
+
 def _read_bouguet(path, image_size):
     if not path.is_file():
         raise CalibrationError(f"{path}: no such file; give the Calib_Results.m saved by Bouguet's toolbox")
+    _check_bouguet_intrinsics(path)
     camera = calibio.read_bouguet(path, image_size=image_size)[0]
     if image_size is not None:
         _check_size(path, None, camera.image_size, image_size)
@@ -549,6 +567,9 @@ def _read_opencv(path, image_size):
     import cv2
 
     camera = calibio.read_opencv(path)[0]
+    if not (np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.dist))):
+        key = "camera_matrix" if not np.all(np.isfinite(camera.K)) else "distortion_coefficients"
+        _fail(path, _line_of(path, key), f"{key} must be finite numbers")
     if not (camera.K[0, 0] > 0 and camera.K[1, 1] > 0):
         _fail(path, _line_of(path, "camera_matrix"), "camera_matrix must have positive focal lengths")
     _check_size(path, _line_of(path, "image_width"), camera.image_size, image_size)
