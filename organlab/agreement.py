@@ -236,8 +236,9 @@ def likely_causes(many, turntable):
         return ("likely causes: a wrong angle label for these views, the specimen or the board moved at these "
                 "stops, or a bad silhouette threshold in these images")
     if many:
-        return ("likely causes: the cameras do not belong to these images (another camera file, names matched to "
-                "the wrong images, translations in other units), or bad silhouettes (threshold, shadows)")
+        return ("likely causes: bad silhouettes (threshold, shadows, a stand, the specimen leaving the frame), or "
+                "cameras that do not belong to these images (another camera file, names matched to the wrong images, "
+                "translations in other units)")
     return ("likely causes: a wrong pose for these views in the camera file, the specimen moved between these "
             "photos, or a bad silhouette in these images (threshold, shadows, the specimen leaving the frame)")
 
