@@ -316,3 +316,15 @@ def test_dino_init_with_its_par_file_reconstructs_like_the_hand_written_session(
     np.testing.assert_array_equal(a.occupancy, b.occupancy)
     assert a.report["volume_mm3"] == b.report["volume_mm3"] and a.report["mesh_volume_mm3"] == b.report["mesh_volume_mm3"]
     assert a.occupancy.sum() > 10000  # a dinosaur, not an empty grid (measured ~15 000 voxels of 8 mm^3)
+
+
+def test_the_examples_run():
+    """The numpydoc Examples of read_cameras and init_session (the suite does not collect doctests)."""
+    import doctest
+
+    import organlab.calibration._formats as formats
+    import organlab.scaffold as scaffold
+
+    for module in (formats, scaffold):
+        result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
+        assert result.attempted > 0 and result.failed == 0, module.__name__
