@@ -4,7 +4,8 @@
                          [--method hull|coloring|space_carving] [--color-threshold X]
                          [--calibration PATH] [--recalibrate] [--measure] [--raw-surface]
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
-    organlab init FOLDER --step DEG [--board 9x6] [--square MM] [--roi ...] [--backdrop ...] [--force]
+    organlab init FOLDER [--step DEG] [--cameras FILE] [--board 9x6] [--square MM] [--roi ...] [--backdrop ...] [--force]
+    organlab export-cameras RESULT_DIR --format colmap|meshroom [--out PATH] [--images SESSION]
     organlab mesh RESULT_DIR [--repair] [--smooth] [--remesh MM] [--tetra] [--measure] [--picture]
     organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [--view [--port P]] [...]
@@ -24,7 +25,7 @@ import sys
 from pathlib import Path
 
 from .agreement import model_mask
-from .calibration import calibrate
+from .calibration import calibrate, export_cameras
 from .capture import run_capture
 from .cliparser import OneLineParser as _Parser
 from .errors import OrganlabError, SettingsError
@@ -98,6 +99,7 @@ def _parser():
     c.add_argument("--quiet", action="store_true")
 
     _init_parser(sub)
+    _export_parser(sub)
     _add_view_parser(sub)
     _mesh_parser(sub)
 
@@ -111,7 +113,16 @@ def _parser():
 def _init_parser(sub):
     i = sub.add_parser("init", help="write a session.json for a folder of images (views sorted by name), to edit")
     i.add_argument("folder", type=Path, help="folder with views/ (or the view images), background/, calibration/...")
-    i.add_argument("--step", type=float, required=True, metavar="DEG", help="table rotation between views, degrees")
+    i.add_argument("--step", type=float, default=None, metavar="DEG",
+                   help="table rotation between views, degrees (default: the angles in the views' names, e.g. 030.png; "
+                        "not needed when --cameras gives every view's pose)")
+    i.add_argument("--cameras", type=Path, default=None, metavar="FILE",
+                   help="known cameras instead of board images: a Middlebury *_par.txt, a COLMAP text model (folder or "
+                        "cameras.txt/images.txt), Bouguet's Calib_Results.m or an OpenCV .yml/.xml (poses where it has them)")
+    i.add_argument("--cameras-scale", type=_positive_float, default=None, metavar="MM",
+                   help="mm per unit of the camera file's translations (default 1000 for Middlebury, metres; 1 otherwise)")
+    i.add_argument("--angles", choices=["names", "step"], default="auto",
+                   help="where the views' angles come from (default: the names when every name is a number, else --step)")
     i.add_argument("--start", type=float, default=0.0, metavar="DEG", help="angle of the first view (default 0)")
     i.add_argument("--board", default="9x6", metavar="CxR", help="board's inner corners, columns x rows (default 9x6)")
     i.add_argument("--square", type=_positive_float, default=20.0, metavar="MM", help="board's square size (default 20)")
@@ -138,15 +149,35 @@ def _init(a):
             raise OrganlabError(f"--backdrop must be 'border', 'frames' or R,G,B in 0-255, got {a.backdrop!r}")
     if len(corners) != 2 or min(corners) < 2:
         raise OrganlabError(f"--board must be COLUMNSxROWS of inner corners (each >= 2), got {a.board!r}")
-    path, notes = init_session(a.folder, step_deg=a.step, start_deg=a.start, inner_corners=corners,
+    path, notes = init_session(a.folder, step_deg=a.step, start_deg=a.start, cameras=a.cameras,
+                               cameras_scale=a.cameras_scale, angles=a.angles, inner_corners=corners,
                                square_size=a.square, roi=roi, backdrop=backdrop, force=a.force)
     doc = json.loads(path.read_text())
-    print(f"organlab init: wrote {path} ({len(doc['views'])} views, "
+    posed = sum("pose" in v for v in doc["views"])
+    print(f"organlab init: wrote {path} ({len(doc['views'])} views{f' ({posed} with their pose)' if posed else ''}, "
           f"{len(doc.get('background_images', []))} background frames, "
           f"{len(doc.get('calibration', {}).get('intrinsic_images', []))} intrinsic and "
           f"{len(doc.get('calibration', {}).get('turntable_images', []))} turntable board images); check:")
     for n in notes:
         print(f"  - {n}")
+    return 0
+
+
+def _export_parser(sub):
+    e = sub.add_parser("export-cameras", help="write the cameras a reconstruction used for another MVS program "
+                       "(COLMAP text model or Meshroom cameras.sfm)")
+    e.add_argument("result", type=Path, help="output folder of 'organlab reconstruct' (holds report.json)")
+    e.add_argument("--format", required=True, choices=["colmap", "meshroom"],
+                   help="colmap: cameras.txt, images.txt, points3D.txt; meshroom: an AliceVision SfMData .sfm")
+    e.add_argument("--out", type=Path, default=None, metavar="PATH",
+                   help="folder (colmap) or .sfm file (meshroom); default RESULT/colmap or RESULT/cameras.sfm")
+    e.add_argument("--images", type=Path, default=None, metavar="SESSION",
+                   help="the folder the views' names are relative to (the session folder; default: the current folder)")
+
+
+def _export_cameras(a):
+    paths = export_cameras(a.result, a.out, format=a.format, images=a.images)
+    print(f"organlab export-cameras: wrote {', '.join(str(p) for p in paths)}")
     return 0
 
 
@@ -398,7 +429,8 @@ def main(argv=None):
     else:
         args = _parser().parse_args(argv)
         handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "view": _view,
-                   "mesh": _mesh, "init": _init}[args.command]
+                   "mesh": _mesh, "init": _init,
+                   "export-cameras": _export_cameras}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:

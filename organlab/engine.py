@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__, surface
-from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement
+from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
 from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
@@ -292,8 +292,8 @@ class SurfaceStage:
 class AgreementFigures:
     """The agreement figures every face shows: one mean, one ranking.
 
-    The views are ranked by :attr:`ViewAgreement.worst` (the largest fraction of
-    the silhouette left unexplained first: the figure whose limit flags a view),
+    The views are ranked by :attr:`ViewAgreement.worst` (:func:`organlab.agreement.worst_views`:
+    the largest unexplained width of outline first, the figure whose limit flags a view),
     and the report, the CLI summary and the viewer panel all read this object.
 
     Attributes
@@ -330,8 +330,7 @@ class AgreementFigures:
         names = tuple(r["image"] for r in rows)
         iou = tuple(float(r["agreement"]["iou"]) for r in rows)
         dis = tuple(float(r["agreement"]["disagreement"]) for r in rows)
-        # the ranking of view_agreement (stable sort on the disagreement), as the report's worst_views
-        ranking = tuple(sorted(range(len(rows)), key=lambda i: -dis[i]))
+        ranking = tuple(worst_views([r["agreement"] for r in rows]))  # view_agreement's ranking
         mean = report["agreement"].get("mean_iou", float(np.mean(iou)))
         return cls(names, iou, dis, ranking, float(mean))
 
@@ -340,8 +339,9 @@ class AgreementFigures:
         idx = [int(i) for i in indices]
         dis = tuple(self.disagreement[i] for i in idx)
         iou = tuple(self.iou[i] for i in idx)
+        rank = {v: k for k, v in enumerate(self.ranking)}
         return AgreementFigures(tuple(self.names[i] for i in idx), iou, dis,
-                                tuple(sorted(range(len(idx)), key=lambda k: -dis[k])), float(np.mean(iou)))
+                                tuple(sorted(range(len(idx)), key=lambda k: rank[idx[k]])), float(np.mean(iou)))
 
     @property
     def worst(self) -> int:
@@ -880,7 +880,9 @@ class Engine:
         cal, cameras, grid = cal_stage.calibration, cal_stage.cameras, carved.grid
         occupancy = carved.occupancy if colored is None else colored.occupancy
         names = self.names
-        agr = view_agreement(surf.mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
+        turntable = None if s is None else [s.views[i].pose is None for i in self.views]
+        agr = view_agreement(surf.mesh, cameras, sils, voxel_size=grid.voxel_size, names=names, hull_mesh=surf.raw_mesh,
+                             turntable=turntable)
         figures = AgreementFigures.from_agreement(agr, names)
         if s is None:  # views without a session: nothing of a session to report
             return ChecksStage(agr, figures, None)

@@ -191,12 +191,14 @@ def agreement_chart(report, path):
 
     rows = [(Path(v["image"]).stem, v["agreement"]) for v in report["views"]]
     limit = report["agreement"]["limit"]
-    vals = np.array([100 * a["disagreement"] for _, a in rows])
+    width = all("disagreement_width_px" in a for _, a in rows)  # issue 25's limit; older reports: % of the silhouette
+    vals = np.array([a["disagreement_width_px"] if width else 100 * a["disagreement"] for _, a in rows])
     fig, ax = plt.subplots(figsize=(max(6.0, 0.22 * len(rows) + 2), 3.2), layout="constrained")
     ax.bar(range(len(rows)), vals, color=["#c0392b" if not a["ok"] else "#4a7fb0" for _, a in rows])
-    ax.axhline(100 * limit, color="k", ls="--", lw=1, label=f"limit {100 * limit:.2f} %")
+    ax.axhline(limit if width else 100 * limit, color="k", ls="--", lw=1,
+               label=f"limit {limit:g} px" if width else f"limit {100 * limit:.2f} %")
     ax.set_xticks(range(len(rows)), [n for n, _ in rows], rotation=90, fontsize=7)
-    ax.set_ylabel("silhouette unexplained (%)")
+    ax.set_ylabel("unexplained (px of outline width)" if width else "silhouette unexplained (%)")
     ax.set_title(f"{report.get('session', '')}: view agreement (red: over the limit)", fontsize=10)
     ax.legend(loc="upper right", fontsize=8)
     path = Path(path)

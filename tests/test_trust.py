@@ -60,9 +60,10 @@ def correct(calibrated):
 def test_the_correct_sample_raises_no_warning(correct):
     r = correct.report
     assert r.get("warnings") == []
-    d = [v["agreement"]["disagreement"] for v in r["views"]]
+    d = [v["agreement"]["disagreement_width_px"] for v in r["views"]]
     iou = [v["agreement"]["iou"] for v in r["views"]]
-    # measured: largest disagreement 0.0021 (limit 0.003), smallest IoU 0.981
+    # measured: largest disagreement 0.032 px of outline width (17 px of views/120.jpg, limit 0.05 px; issue 15's
+    # measure on the finished surface: 0.0021 of the silhouette), smallest IoU 0.981
     assert max(d) < AGREEMENT_LIMIT and min(iou) > 0.975
     assert all(v["agreement"]["ok"] for v in r["views"])
     assert len(r["agreement"]["worst_views"]) == 3
@@ -83,7 +84,7 @@ def test_a_mislabelled_view_is_flagged_and_strict_exits_2(calibrated, tmp_path, 
     assert report["agreement"]["worst_views"][0] == "views/050.jpg"
     assert len(report["warnings"]) == 1 and "views/050.jpg" in report["warnings"][0]
     assert "wrong angle" in report["warnings"][0]
-    # measured 0.0056 (limit 0.003); the other views stay within it (<= 0.0027)
+    # measured 0.098 px of outline width (53 px, limit 0.05 px); the other views stay within it (<= 0.041)
     bad = [v["image"] for v in report["views"] if not v["agreement"]["ok"]]
     assert bad == ["views/050.jpg"]
     assert "worst views       views/050.jpg" in captured.out
@@ -273,7 +274,9 @@ def test_init_writes_the_samples_session(tmp_path, capsys):
     for p in sorted((SAMPLE / "views").iterdir())[:3]:
         shutil.copy(p, flat / f"img{int(p.stem) // 10}.jpg")
     assert main(["init", str(flat), "--step", "-120"]) == 2
-    _one_line_error(capsys, "session.json", "no intrinsics")
+    # the fix named, not a session.json that init has just removed (issue 25)
+    line = _one_line_error(capsys, str(flat), "no cameras", "--cameras FILE", "board images")
+    assert "session.json" not in line
     assert not (flat / "session.json").exists()
 
 

@@ -38,11 +38,13 @@ and :func:`read_camera` (either format, by its suffix).
 
 Private modules: ``_board`` (board geometry and corner detection), ``_intrinsics``,
 ``_turntable``, ``_result`` (the :class:`Calibration` type, its file form, session glue),
-``_files`` (other tools' calibration files), ``_common`` (thresholds, geometry, input checks).
+``_files`` (other tools' calibration files), ``_common`` (thresholds, geometry, input checks),
+``_formats`` (posed cameras of other tools in and out: :func:`read_cameras`, :func:`write_cameras`).
 """
 
 from ._board import board_points, detect_board
 from ._files import read_bouguet, read_camera, read_opencv, write_bouguet, write_opencv
+from ._formats import CAMERA_FORMATS, CameraFile, camera_format, export_cameras, read_cameras, write_cameras
 from ._intrinsics import IntrinsicCalibration, calibrate_intrinsics, fit_intrinsics
 from ._result import Calibration, calibrate, calibration_for, needs_calibration, session_fingerprint
 from ._turntable import TurntableCalibration, calibrate_turntable, fit_turntable
@@ -66,4 +68,10 @@ __all__ = [
     "read_opencv",
     "write_opencv",
     "read_camera",
+    "CAMERA_FORMATS",
+    "CameraFile",
+    "camera_format",
+    "export_cameras",
+    "read_cameras",
+    "write_cameras",
 ]
