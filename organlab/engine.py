@@ -17,7 +17,7 @@ Examples
 >>> from organlab.engine import Engine, Settings
 >>> eng = Engine("sample_sessions/aaa_phantom", views=range(0, 36, 6))
 >>> rec = eng.run(Settings(voxel_size=4.0, finish=False), until="carving")
->>> rec.occupancy.any(), rec.mesh is None
+>>> bool(rec.occupancy.any()), rec.mesh is None
 (True, True)
 >>> eng.run(Settings(voxel_size=4.0, finish=False, threshold=20.0), until="carving").report is None
 True
@@ -105,7 +105,7 @@ class Settings:
     >>> Settings(threshold=-1).validate()
     Traceback (most recent call last):
     ...
-    organlab.engine.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
+    organlab.errors.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
     """
 
     voxel_size: float = 1.0
