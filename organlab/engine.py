@@ -17,7 +17,7 @@ Examples
 >>> from organlab.engine import Engine, Settings
 >>> eng = Engine("sample_sessions/aaa_phantom", views=range(0, 36, 6))
 >>> rec = eng.run(Settings(voxel_size=4.0, finish=False), until="carving")
->>> rec.occupancy.any(), rec.mesh is None
+>>> bool(rec.occupancy.any()), rec.mesh is None
 (True, True)
 >>> eng.run(Settings(voxel_size=4.0, finish=False, threshold=20.0), until="carving").report is None
 True
@@ -104,7 +104,7 @@ class Settings:
     >>> Settings(threshold=-1).validate()
     Traceback (most recent call last):
     ...
-    organlab.engine.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
+    organlab.errors.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
     """
 
     voxel_size: float = 1.0
@@ -807,7 +807,7 @@ class Engine:
         return sils
 
     def _run_carving(self, settings, clock, out, notify):
-        sils, cameras = out["silhouettes"], out["calibration"].cameras
+        sils, cameras = out["silhouettes"], _cameras(out)
         grid = self.grid(settings)
         bar = clock.bar("carving")
         if settings.hull == "thesis":
@@ -828,7 +828,7 @@ class Engine:
     def _run_coloring(self, settings, clock, out, notify):
         if settings.method == "hull":
             return None
-        carved, sils, cameras = out["carving"], out["silhouettes"], out["calibration"].cameras
+        carved, sils, cameras = out["carving"], out["silhouettes"], _cameras(out)
         kind = "voxel_coloring" if settings.method == "coloring" else "space_carving"
         bar = clock.bar("coloring")
         res = color_voxels(self.images, cameras, carved.occupancy, carved.grid, method=kind,
@@ -840,7 +840,7 @@ class Engine:
                              report_entry(res, carved.occupancy, carved.grid))
 
     def _run_surface(self, settings, clock, out, notify):
-        carved, colored, cameras = out["carving"], out["coloring"], out["calibration"].cameras
+        carved, colored, cameras = out["carving"], out["coloring"], _cameras(out)
         grid = carved.grid
         bar = clock.bar("surface")
         # after colouring, the surface is the coloured voxel model's: the hull field knows
@@ -877,7 +877,7 @@ class Engine:
         s = self.session
         cal_stage, sils, carved = out["calibration"], out["silhouettes"], out["carving"]
         colored, surf = out["coloring"], out["surface"]
-        cal, cameras, grid = cal_stage.calibration, cal_stage.cameras, carved.grid
+        cal, cameras, grid = cal_stage.calibration, _cameras(out), carved.grid
         occupancy = carved.occupancy if colored is None else colored.occupancy
         names = self.names
         turntable = None if s is None else [s.views[i].pose is None for i in self.views]
@@ -933,7 +933,7 @@ class Engine:
             None if carved is None else carved.grid,
             occupancy,
             None if surf is None else surf.mesh,
-            [] if cal is None else cal.cameras,
+            [] if cal is None else _cameras(out),
             out.get("silhouettes") or [],
             None if checks is None else checks.report,
             None if carved is None else carved.field,
@@ -1105,6 +1105,14 @@ class LiveHull:
 
         return cls(VoxelGrid.from_session(s, voxel_size), tolerance=tolerance, silhouette=find,
                    camera0=cal.turntable.camera)
+
+
+def _cameras(out):
+    """The views' cameras the stages after the silhouettes use: a ``poses`` stage's result (a refinement
+    between the silhouettes and the carving, with a ``cameras`` attribute) when there is one, else the
+    calibration's."""
+    poses = out.get("poses")
+    return out["calibration"].cameras if poses is None else poses.cameras
 
 
 def _hashable(v):

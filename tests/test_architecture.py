@@ -261,9 +261,7 @@ ANNOTATED = {
     "organlab.carving": set(),
     "organlab.agreement": set(),
     "organlab.calibration": set(),
-    # capture: the hardware classes and capture_session are next (issue 19)
-    "organlab.capture": {"AngleAudit", "CaptureCamera", "FolderCamera", "MDriveTurntable", "OpenCVCamera", "SerialLog",
-                         "Turntable", "board_rotation", "capture_session", "console_prompt", "stop_angles"},
+    "organlab.capture": set(),
     "organlab.coloring": set(),
     "organlab.surface": set(),
     "organlab.raster": set(),

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import board_points, detect_board
+from ..camera import Camera
+from ..session import Pattern
 from ._errors import CaptureError
 
 __all__ = ["board_rotation", "AngleAudit"]
@@ -25,7 +27,7 @@ __all__ = ["board_rotation", "AngleAudit"]
 AUDIT_LIMIT_DEG = 0.5
 
 
-def board_rotation(image, camera, pattern):
+def board_rotation(image: np.ndarray, camera: Camera, pattern: Pattern) -> np.ndarray | None:
     """Board-to-camera rotation of the checkerboard in ``image``, or None when no oriented board is found.
 
     Parameters
@@ -68,7 +70,7 @@ class AngleAudit:
         than this is flagged.
     """
 
-    def __init__(self, camera, pattern, *, limit_deg=AUDIT_LIMIT_DEG):
+    def __init__(self, camera: Camera, pattern: Pattern, *, limit_deg: float = AUDIT_LIMIT_DEG) -> None:
         if not limit_deg > 0:
             raise CaptureError(f"audit limit must be > 0 deg, got {limit_deg}")
         self.camera = camera
@@ -76,7 +78,7 @@ class AngleAudit:
         self.limit_deg = float(limit_deg)
         self.reference = None  # (commanded angle, R_cam_board)
 
-    def check(self, image, commanded_deg):
+    def check(self, image: np.ndarray, commanded_deg: float) -> dict:
         """Audit one stop.
 
         Returns

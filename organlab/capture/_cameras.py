@@ -34,7 +34,7 @@ class CaptureCamera(ABC):
 
     name = "camera"
 
-    def __init__(self, *, settle_frames=2, average=1):
+    def __init__(self, *, settle_frames: int = 2, average: int = 1) -> None:
         if int(settle_frames) < 0 or int(average) < 1:
             raise CameraError(f"settle_frames must be >= 0 and average >= 1, got {settle_frames} and {average}")
         self.settle_frames = int(settle_frames)
@@ -48,7 +48,7 @@ class CaptureCamera(ABC):
         """Read one frame and throw it away."""
         self._read()
 
-    def grab(self, *, settle_frames=None, average=None):
+    def grab(self, *, settle_frames: int | None = None, average: int | None = None) -> np.ndarray:
         """Settle, then take one image.
 
         Returns
@@ -67,7 +67,7 @@ class CaptureCamera(ABC):
             acc = f if acc is None else acc + f
         return np.clip(np.rint(acc / n), 0, 255).astype(np.uint8)
 
-    def close(self):
+    def close(self) -> None:
         pass
 
     def __enter__(self):
@@ -90,7 +90,8 @@ class OpenCVCamera(CaptureCamera):
         See :class:`CaptureCamera`.
     """
 
-    def __init__(self, source=0, *, image_size=None, settle_frames=5, average=1):
+    def __init__(self, source: int | str = 0, *, image_size: tuple[int, int] | None = None, settle_frames: int = 5,
+                 average: int = 1) -> None:
         import cv2
 
         super().__init__(settle_frames=settle_frames, average=average)
@@ -122,7 +123,7 @@ class OpenCVCamera(CaptureCamera):
             frame = np.repeat(frame[:, :, None], 3, axis=2)
         return np.ascontiguousarray(frame[:, :, 2::-1])
 
-    def close(self):
+    def close(self) -> None:
         if self._cap is not None:
             self._cap.release()
             self._cap = None
@@ -134,7 +135,7 @@ class FolderCamera(CaptureCamera):
     Useful to test a capture set-up, or to re-file images taken by another program.
     """
 
-    def __init__(self, folder):
+    def __init__(self, folder: str | Path) -> None:
         super().__init__(settle_frames=0, average=1)
         self.folder = Path(folder)
         if not self.folder.is_dir():
@@ -145,7 +146,7 @@ class FolderCamera(CaptureCamera):
         self.name = f"folder:{self.folder}"
         self._next = 0
 
-    def grab(self, *, settle_frames=None, average=None):
+    def grab(self, *, settle_frames: int | None = None, average: int | None = None) -> np.ndarray:
         return self._read()
 
     def _read(self):

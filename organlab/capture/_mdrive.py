@@ -46,28 +46,28 @@ class Turntable(ABC):
     #: The table has a home switch (:meth:`home` works).
     has_home_switch = False
 
-    def __init__(self):
+    def __init__(self) -> None:
         #: Notable things that happened (retries, corrected lost steps): dicts with ``kind`` and ``message``.
         self.events = []
 
     @abstractmethod
-    def move_to(self, angle_deg):
+    def move_to(self, angle_deg: float) -> float:
         """Move to ``angle_deg``, wait until the table stands still, verify; return the angle read back (deg)."""
 
     @abstractmethod
-    def angle(self):
+    def angle(self) -> float:
         """The table's current angle, degrees, as the controller reports it."""
 
     @abstractmethod
-    def home(self):
+    def home(self) -> float:
         """Find the home switch and make that angle 0."""
 
     @abstractmethod
-    def zero(self):
+    def zero(self) -> None:
         """Take the current position as angle 0 (tables without a home switch)."""
 
     @abstractmethod
-    def close(self):
+    def close(self) -> None:
         """Release the port."""
 
     def __enter__(self):
@@ -84,7 +84,7 @@ class SerialLog:
     remarks (timeouts, retries).  ``path=None`` keeps the lines in memory only.
     """
 
-    def __init__(self, path=None):
+    def __init__(self, path: str | Path | None = None) -> None:
         self.path = None if path is None else Path(path)
         self.lines = []
         if self.path is not None:
@@ -147,26 +147,26 @@ class MDriveTurntable(Turntable):
 
     def __init__(
         self,
-        port,
+        port: str,
         *,
-        baudrate=9600,
-        steps_per_rev=200,
-        microsteps=256,
-        gear_ratio=90.0,
-        run_current=75,
-        hold_current=25,
-        speed_deg_s=30.0,
-        accel_deg_s2=120.0,
-        device_name=None,
-        home_switch=False,
-        timeout=1.0,
-        retries=2,
-        move_timeout=60.0,
-        poll_interval=0.02,
-        tolerance_deg=0.01,
-        corrections=1,
-        log=None,
-    ):
+        baudrate: int = 9600,
+        steps_per_rev: int = 200,
+        microsteps: int = 256,
+        gear_ratio: float = 90.0,
+        run_current: int = 75,
+        hold_current: int = 25,
+        speed_deg_s: float = 30.0,
+        accel_deg_s2: float = 120.0,
+        device_name: str | None = None,
+        home_switch: bool = False,
+        timeout: float = 1.0,
+        retries: int = 2,
+        move_timeout: float = 60.0,
+        poll_interval: float = 0.02,
+        tolerance_deg: float = 0.01,
+        corrections: int = 1,
+        log: SerialLog | None = None,
+    ) -> None:
         import serial
 
         super().__init__()
@@ -271,11 +271,11 @@ class MDriveTurntable(Turntable):
             raise NoReplyError(f"{self.port}: no reply to {cmd!r} after {tries} tries ({self.timeout:g} s each); is the controller powered and the baud rate right?")
         raise GarbledReplyError(f"{self.port}: garbled reply to {cmd!r} after {tries} tries; check the baud rate, cable and party mode")
 
-    def command(self, cmd, *, retry=True):
+    def command(self, cmd: str, *, retry: bool = True) -> None:
         """Send a set-up or motion command and wait for its (empty) answer."""
         self._exchange(cmd, lambda t: None if t == "" else _BAD, retry=retry)
 
-    def query(self, cmd):
+    def query(self, cmd: str) -> int:
         """Send a ``PR`` command and return its integer answer."""
         return self._exchange(cmd, lambda t: int(t) if _INT.match(t) else _BAD, skip_blank=True)
 
@@ -300,7 +300,7 @@ class MDriveTurntable(Turntable):
                              f"{abs(diff)} steps short of {target / self.steps_per_deg:.3f} deg; free the table or raise the run current (RC)")
         return pos, diff
 
-    def move_to(self, angle_deg):
+    def move_to(self, angle_deg: float) -> float:
         target = int(round(float(angle_deg) * self.steps_per_deg))
         what = f"the move to {angle_deg:g} deg"
         for attempt in range(self.corrections + 1):
@@ -314,7 +314,7 @@ class MDriveTurntable(Turntable):
             self.log("!", msg + ("; moving again" if attempt < self.corrections else ""))
         raise PositionError(f"{self.port}: {msg} after {self.corrections} correction(s); check the load, the current and the coupling")
 
-    def move_by(self, delta_deg):
+    def move_by(self, delta_deg: float) -> float:
         """Relative move (``MR``); not repeated blindly, the read-back decides whether it ran. Returns the angle."""
         start = self.query("PR P")
         steps = int(round(float(delta_deg) * self.steps_per_deg))
@@ -333,10 +333,10 @@ class MDriveTurntable(Turntable):
             raise PositionError(f"{self.port}: lost steps: {what} ended {diff:+d} steps from its target; check the load and the current")
         return pos / self.steps_per_deg
 
-    def angle(self):
+    def angle(self) -> float:
         return self.query("PR P") / self.steps_per_deg
 
-    def home(self):
+    def home(self) -> float:
         if not self.has_home_switch:
             raise TurntableError(f"{self.port}: no home switch configured (home_switch=False); use zero() at a marked position instead")
         self.command("HM 1")
@@ -346,10 +346,10 @@ class MDriveTurntable(Turntable):
             raise PositionError(f"{self.port}: position is not 0 after homing (P=0); check the controller")
         return 0.0
 
-    def zero(self):
+    def zero(self) -> None:
         self.command("P=0")
 
-    def close(self):
+    def close(self) -> None:
         ser = getattr(self, "_ser", None)
         if ser is not None:
             try:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,8 +33,9 @@ from ..camera import Camera
 from ..errors import OrganlabError
 from ..session import DEFAULT_PATTERN, DEFAULT_ROI, FORMAT, Pattern, read_image, save_session
 from ._audit import AUDIT_LIMIT_DEG, AngleAudit
+from ._cameras import CaptureCamera
 from ._errors import AngleAuditError, CameraError, CaptureError
-from ._mdrive import SerialLog
+from ._mdrive import SerialLog, Turntable
 
 __all__ = ["capture_session", "console_prompt", "stop_angles"]
 
@@ -47,12 +49,12 @@ _MESSAGES = {
 LOG_NAME = "capture/serial.log"
 
 
-def console_prompt(stage, message, index=None):
+def console_prompt(stage: str, message: str, index: int | None = None) -> None:
     """Ask the operator on the terminal and wait for Enter."""
     input(f"[{stage}] {message}, then press Enter ")
 
 
-def stop_angles(step_deg):
+def stop_angles(step_deg: float) -> list[float]:
     """The table stops ``0, step, 2 step, ...`` below 360 deg.
 
     Returns
@@ -252,26 +254,26 @@ class _Capture:
 
 
 def capture_session(
-    out,
-    turntable,
-    camera,
+    out: str | Path,
+    turntable: Turntable,
+    camera: CaptureCamera,
     *,
-    step_deg=10.0,
-    n_background=20,
-    n_intrinsic=0,
-    board=True,
-    intrinsics=None,
-    pattern=None,
-    roi=None,
-    reference=None,
-    name=None,
-    audit_limit_deg=AUDIT_LIMIT_DEG,
-    stop_on_flag=True,
-    prompt=console_prompt,
-    on_view=None,
-    say=None,
-    progress=None,
-):
+    step_deg: float = 10.0,
+    n_background: int = 20,
+    n_intrinsic: int = 0,
+    board: bool = True,
+    intrinsics: Camera | None = None,
+    pattern: Pattern | tuple | None = None,
+    roi: dict | None = None,
+    reference: dict | None = None,
+    name: str | None = None,
+    audit_limit_deg: float = AUDIT_LIMIT_DEG,
+    stop_on_flag: bool = True,
+    prompt: Callable[[str, str, int | None], object] = console_prompt,
+    on_view: Callable[[int, float, np.ndarray], object] | None = None,
+    say: Callable[[str], object] | None = None,
+    progress: Callable[[int, int], object] | None = None,
+) -> Path:
     """Capture a session folder, or continue one that stopped.
 
     Parameters

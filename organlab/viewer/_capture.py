@@ -15,7 +15,10 @@ once and switches the viewer off; it never stops the capture.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from ..engine import LiveHull
 from ..session import load_session
@@ -53,8 +56,9 @@ class CaptureViewer:
         Why the viewer stopped following the capture.
     """
 
-    def __init__(self, session_dir, *, voxel_size=2.0, threshold=None, tolerance=0, host="127.0.0.1", port=8080,
-                 verbose=False, say=None):
+    def __init__(self, session_dir: str | Path, *, voxel_size: float = 2.0, threshold: float | None = None,
+                 tolerance: int = 0, host: str = "127.0.0.1", port: int = 8080, verbose: bool = False,
+                 say: Callable[[str], None] | None = None):
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0 mm, got {voxel_size}")
         self.root = Path(session_dir)
@@ -69,10 +73,10 @@ class CaptureViewer:
         self._listener = None
 
     @property
-    def url(self):
+    def url(self) -> str:
         return self.live.url
 
-    def on_view(self, index, angle_deg, image):
+    def on_view(self, index: int, angle_deg: float, image: np.ndarray) -> None:
         """The capture's ``on_view`` hook: show view ``index`` (taken at ``angle_deg``) and carve with it.
 
         Parameters
@@ -113,7 +117,7 @@ class CaptureViewer:
             listener(k, v.angle_deg, s.read(v.image, key=f"views[{k}].image"))
         self._listener = listener
 
-    def stop(self):
+    def stop(self) -> None:
         """Stop the server (frees the port)."""
         self.live.stop()
 

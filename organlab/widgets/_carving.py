@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from ..camera import Camera
 from ..engine import Engine, Settings
 from ..errors import OrganlabError
 from ..figures import mesh_snapshot
+from ..session import Session
+from ..silhouette import Silhouette
 from ._common import ipywidgets, new_figure, redraw
 
 
@@ -62,8 +67,10 @@ class CarvingTuner:
     engine : organlab.engine.Engine
     """
 
-    def __init__(self, images, silhouettes, cameras, roi_min, roi_max, *, voxel_size=2.0, tolerance=0,
-                 color_threshold=None, reference_volume=None, angles_deg=None):
+    def __init__(self, images: Sequence[np.ndarray], silhouettes: Sequence[Silhouette], cameras: Sequence[Camera],
+                 roi_min: Sequence[float], roi_max: Sequence[float], *, voxel_size: float = 2.0, tolerance: int = 0,
+                 color_threshold: float | str | None = None, reference_volume: float | None = None,
+                 angles_deg: Sequence[float] | None = None):
         n = len(cameras)
         if len(silhouettes) != n or len(images) != n:
             raise OrganlabError(f"got {len(images)} images, {len(silhouettes)} silhouettes and {n} cameras: need one of each per view")
@@ -87,7 +94,8 @@ class CarvingTuner:
         self.last_figure = None
 
     @classmethod
-    def from_session(cls, session, cameras, silhouettes=None, *, views=None, **options):
+    def from_session(cls, session: Session, cameras: Sequence[Camera], silhouettes: Sequence[Silhouette] | None = None,
+                     *, views: Sequence[int] | None = None, **options: Any) -> CarvingTuner:
         """The tuner of a session with its cameras (e.g. from the calibration).
 
         ``views``: indices of the views to use (default all); silhouettes are
@@ -130,7 +138,7 @@ class CarvingTuner:
         }
         return self.result
 
-    def summary(self):
+    def summary(self) -> str:
         """One line: parameters, volume, error, worst agreement."""
         r = self.result if self.result is not None else self.run()
         text = (
@@ -144,7 +152,7 @@ class CarvingTuner:
         return text + f", agreement (IoU) worst view {r['agreement'].min():.3f}, mean {r['agreement'].mean():.3f}"
 
     # ---------------------------------------------------------- pictures
-    def mesh_picture(self, *, window_size=(640, 560)):
+    def mesh_picture(self, *, window_size: tuple = (640, 560)) -> np.ndarray:
         """(H, W, 3) uint8: the mesh rendered off-screen (pyvista, :func:`organlab.figures.mesh_snapshot`)."""
         from matplotlib.image import imread
 
