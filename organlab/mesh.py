@@ -52,14 +52,15 @@ class Mesh:
         a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
         return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2.0)
 
-    def _edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The undirected edges, sorted once (cached: the mesh is immutable).
 
-        Returns ``(key, order, starts, counts)``: ``key`` (3F,) int64 of each
-        directed edge ``f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]`` (stacked),
-        ``order`` the argsort of ``key``, and for each distinct undirected
-        edge the position of its first directed edge in ``order`` and how
-        many faces use it.
+        Returns ``(order, starts, counts)``: ``order`` sorts the directed edges
+        ``f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]`` (stacked: edge ``i`` is slot
+        ``i // F`` of face ``i % F``) by their undirected edge; for each distinct
+        undirected edge, the position in ``order`` of its first directed edge
+        and how many faces use it.  ``order[p]`` and ``order[p + 1]`` are the same
+        edge where :meth:`_same_as_next` is True.
         """
         cached = self.__dict__.get("_edge_table")
         if cached is not None:
@@ -69,22 +70,33 @@ class Mesh:
         a = f.T.ravel()  # corners 0 of all faces, then 1, then 2: directed edge i goes a[i] -> b[i]
         b = f[:, [1, 2, 0]].T.ravel()
         key = np.minimum(a, b) * nv + np.maximum(a, b)
+        del a, b
         order = np.argsort(key)
         ks = key[order]
+        del key
         first = np.ones(len(ks), dtype=bool)
         first[1:] = ks[1:] != ks[:-1]
-        starts = np.flatnonzero(first)
-        counts = np.diff(np.append(starts, len(ks)))
-        table = (key, order, starts, counts)
+        del ks
+        small = np.int32 if len(first) < 2**31 else np.int64  # half the memory of what stays cached
+        starts = np.flatnonzero(first).astype(small)
+        counts = np.diff(np.append(starts, len(first))).astype(np.int32)
+        table = (order.astype(small), starts, counts)
         object.__setattr__(self, "_edge_table", table)
         return table
+
+    def _same_as_next(self) -> np.ndarray:
+        """(3F - 1,) bool: sorted directed edges ``p`` and ``p + 1`` (see :meth:`_edges`) are the same edge."""
+        order, starts, _ = self._edges()
+        same = np.ones(max(len(order) - 1, 0), dtype=bool)
+        same[starts[1:].astype(np.int64) - 1] = False
+        return same
 
     def edge_counts(self) -> tuple[int, int, int]:
         """Directed-edge bookkeeping: ``(n_boundary, n_nonmanifold, n_misoriented)`` edges."""
         f = self.faces
         if len(f) == 0:
             return 0, 0, 0
-        key, order, starts, counts = self._edges()
+        order, starts, counts = self._edges()
         boundary = int((counts == 1).sum())
         nonmanifold = int((counts > 2).sum())
         # in an oriented closed surface each undirected edge is used once in each direction

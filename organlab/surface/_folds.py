@@ -30,9 +30,8 @@ def fold_edges(mesh, fold_deg):
     v, f = mesh.vertices, np.asarray(mesh.faces, dtype=np.int64)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-300
-    key, order, _, _ = mesh._edges()  # directed edge i: slot i // F, face i % F
-    ks = key[order]
-    same = ks[1:] == ks[:-1]
+    order = mesh._edges()[0].astype(np.int64)  # directed edge i: slot i // F, face i % F
+    same = mesh._same_as_next()
     ea, eb = order[:-1][same], order[1:][same]
     F = len(f)
     cos = np.einsum("ij,ij->i", n[ea % F], n[eb % F])

@@ -63,13 +63,13 @@ def nonmanifold_vertices(mesh):
     if len(f) == 0:
         return 0
     F = len(f)
-    key, order, starts, counts = mesh._edges()
+    order, starts, counts = mesh._edges()
+    order, starts = order.astype(np.int64), starts.astype(np.int64)
     if (counts == 2).all():
         fast = _fans_closed(f, order, starts)
         if fast is not None:
             return fast
-    ks = key[order]
-    same = ks[1:] == ks[:-1]
+    same = mesh._same_as_next()
     ea, eb = order[:-1][same], order[1:][same]  # directed edges (slot * F + face) of consecutive faces on an edge
     fa, sa = ea % F, ea // F
     fb, sb = eb % F, eb // F
@@ -115,8 +115,8 @@ def boundary_loops(mesh: Mesh) -> list[int]:
     f = np.asarray(mesh.faces, dtype=np.int64)
     if len(f) == 0:
         return []
-    _, order, starts, counts = mesh._edges()
-    e = order[starts[counts == 1]]  # the directed edges used by one face only
+    order, starts, counts = mesh._edges()
+    e = order[starts[counts == 1]].astype(np.int64)  # the directed edges used by one face only
     if len(e) == 0:
         return []
     from scipy.sparse import coo_matrix
@@ -182,8 +182,8 @@ def _mesh_quality(mesh):
     b, nm, mis = mesh.edge_counts()
     nv = len(mesh.vertices)
     if len(f):
-        _, order, starts, _ = mesh._edges()
-        u = order[starts]  # one directed edge per undirected edge
+        order, starts, _ = mesh._edges()
+        u = order[starts].astype(np.int64)  # one directed edge per undirected edge
         e = np.stack([f[u % len(f), u // len(f)], f[u % len(f), (u // len(f) + 1) % 3]], axis=1)
     else:
         e = np.zeros((0, 2), int)
