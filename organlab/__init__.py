@@ -21,7 +21,13 @@ Names other than the light ones below load their module on first use, so
 ``import organlab`` stays fast.
 """
 
+import os
 from importlib import import_module
+
+# numba tries its TBB threading layer first; pymeshlab ships a libtbb older than numba accepts, and once
+# pymeshlab is loaded that choice warns (an error under the tests' filterwarnings) before falling back.
+# OpenMP first: thread-safe like TBB (the viewer's worker thread).  Read by numba when it is first imported.
+os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp workqueue tbb")
 
 from .camera import Camera
 from .errors import CalibrationError, OrganlabError, SessionError
