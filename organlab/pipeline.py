@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from ._checks import check_tolerance, model_warnings
 from ._progress import NullProgress
 from .errors import SessionError
 from .grid import VoxelGrid
@@ -279,6 +280,7 @@ def reconstruct(
     if coloring_info is not None:
         report["coloring"] = coloring_info
     _add_checks(report, session, grid, mesh, cameras, sils, cal)
+    report["warnings"][:0] = model_warnings(cameras, occupancy, session.roi_min, session.roi_max, voxel_size=grid.voxel_size, tolerance=tolerance)
     return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal, raw_mesh, aaa)
 
 
@@ -323,6 +325,8 @@ def _finish_and_measure(session, mesh, volume, grid, finish, measure, footprint=
 def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory):
     """Before the long work: the grid's memory (organlab.preflight), a finite colour threshold."""
     from .preflight import check_grid_memory
+
+    check_tolerance(tolerance, len(session.views))  # a negative one: one line before the long work
 
     if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
         raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")
