@@ -37,6 +37,75 @@ def _positive_float(text):
     return v
 
 
+def _port(text):
+    """A TCP port, 0 (any free one) to 65535: a bad one ends in one line, before a server starts."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port from 0 to 65535 (0: any free port), got {v}")
+    return v
+
+
+def _check_listen(host, port, option="--port"):
+    """Bind ``host:port`` once in this thread, so that what the server thread would die of is one line here.
+
+    ``port`` None: the default 8080, or the next free port when taken (viser's search);
+    an explicit port in use is refused.
+    """
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, 0 if port is None else port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError, ValueError) as e:
+        raise OrganlabError(f"--host {host!r}: not an address of this machine ({e}); use 127.0.0.1") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        try:
+            sock.bind(addr)
+        except OSError as e:
+            if port is not None and e.errno in (98, 48, 10048):  # EADDRINUSE (Linux, macOS, Windows)
+                raise OrganlabError(f"{option} {port}: already in use on {host}; give another port, or 0 for any "
+                                    "free one") from None
+            raise OrganlabError(f"cannot listen on {host}:{port if port is not None else 0} ({e.strerror or e}); "
+                                "use --host 127.0.0.1 and another --port") from None
+    return 8080 if port is None else port
+
+
+def _start_server(start, what):
+    """``start()``, with an exception of a thread started meanwhile (the server's) ending it in one line.
+
+    viser starts its server in a thread and waits for it; a thread that dies before it is ready
+    (a port it cannot bind) left the main thread waiting for ever.  The thread's exception is
+    caught here, the wait interrupted (SIGINT to the main thread) and one line raised.
+    """
+    import signal
+    import threading
+
+    failed = []
+    previous = threading.excepthook
+
+    def hook(args):
+        if args.thread is not threading.main_thread() and not failed:
+            failed.append(args.exc_value)
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        else:
+            previous(args)
+
+    threading.excepthook = hook
+    try:
+        return start()
+    except KeyboardInterrupt:
+        if failed:
+            e = failed[0]
+            raise OrganlabError(f"{what}: the server could not start ({type(e).__name__}: {e}); "
+                                "check --host and --port") from None
+        raise
+    finally:
+        threading.excepthook = previous
+
+
 def _parser():
     p = _Parser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -164,7 +233,8 @@ def _capture_parser(sub):
     k.add_argument("--quiet", action="store_true")
     k.add_argument("--view", action="store_true", help="watch the capture in the live 3D viewer (browser): each view at "
                    "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
-    k.add_argument("--port", type=int, default=8080, help="with --view: TCP port on 127.0.0.1 (default 8080; the next free one if taken)")
+    k.add_argument("--port", type=_port, default=None, help="with --view: TCP port on 127.0.0.1 (default 8080, the next "
+                   "free one if taken; a port given and taken is refused)")
     k.add_argument("--view-voxel-size", type=_positive_float, default=2.0, metavar="MM",
                    help="with --view: voxel edge of the live hull in mm (default 2)")
 
@@ -175,7 +245,8 @@ def _add_view_parser(sub):
     v.add_argument("session", type=Path, help="session folder (holds session.json)")
     v.add_argument("--result", type=Path, default=None, metavar="DIR",
                    help="show a folder written by 'organlab reconstruct' instead of reconstructing at start")
-    v.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
+    v.add_argument("--port", type=_port, default=None, help="TCP port (default 8080, the next free one if taken; a port "
+                   "given and taken is refused)")
     v.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     v.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
 
@@ -185,7 +256,9 @@ def _view(a):
 
     from .viewer import SessionViewer
 
-    app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port)
+    port = _check_listen(a.host, a.port)
+    app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=port),
+                        "organlab view")
     print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
     try:
         while True:
@@ -339,6 +412,8 @@ def _capture(a):
         w, h = (int(v) for v in a.sim_size.lower().split("x"))
     except ValueError:
         raise OrganlabError(f"--sim-size must be WIDTHxHEIGHT, e.g. 640x480, got {a.sim_size!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise OrganlabError(f"--sim-size must be WIDTHxHEIGHT with each side in 16-8192 px, got {a.sim_size!r}")
     sim = {k: drive[k] for k in ("steps_per_rev", "microsteps", "gear_ratio")}
     sim["time_scale"] = 10.0  # simulated moves 10x faster than the real table
     viewer = _capture_viewer(a)
@@ -371,7 +446,8 @@ def _capture_viewer(a):
                             "drop --no-board or --view")
     from .viewer import CaptureViewer
 
-    viewer = CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=a.port)
+    port = _check_listen("127.0.0.1", a.port)
+    viewer = _start_server(lambda: CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=port), "organlab capture --view")
     print(f"organlab capture: live view at {viewer.url}  (the hull appears with the first view)")
     return viewer
 
