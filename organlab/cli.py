@@ -149,6 +149,7 @@ def _parser():
                        help="write them into the session folder (later reconstructions reuse its calibration.json)")
     c.add_argument("--figures", type=Path, default=None, metavar="DIR",
                    help="where to write the check figures (default: calibration_check beside calibration.json)")
+    c.add_argument("--force", action="store_true", help="with --out: replace the calibration.json already in DIR")
     c.add_argument("--quiet", action="store_true")
 
     _init_parser(sub)
@@ -278,6 +279,13 @@ def _mesh_parser(sub):
 
 
 def _mesh(a):
+    from .preflight import lock_output_dir
+
+    with lock_output_dir(a.result):  # not while a reconstruct replaces the same folder
+        return _mesh_locked(a)
+
+
+def _mesh_locked(a):
     from .surface import mesh_result
 
     steps = a.repair or a.smooth or a.remesh is not None
@@ -313,6 +321,15 @@ def _bars(quiet):
 
 
 def _reconstruct(a):
+    from .preflight import lock_output_dir
+
+    with lock_output_dir(a.out) as recovered:  # one run at a time into --out; a killed run's leftovers recovered
+        for note in recovered:
+            print(f"organlab: {note}", file=sys.stderr)
+        return _reconstruct_locked(a)
+
+
+def _reconstruct_locked(a):
     from .pipeline import reconstruct, summary_table, write_outputs
     from .preflight import atomic_output_dir, check_output_dir, parse_memory
 
@@ -384,6 +401,8 @@ def _calibrate(a):
     out = session.root if a.in_place else a.out
     if out.exists() and not out.is_dir():
         raise OrganlabError(f"{out}: exists and is not a folder; give --out a folder")
+    if not a.in_place and (out / "calibration.json").exists() and not a.force:
+        raise OrganlabError(f"{out / 'calibration.json'}: already exists; give --force to replace it, or another --out")
     bar = _bars(a.quiet)("calibration")
     cal = calibrate(session, progress=bar)
     bar.close()

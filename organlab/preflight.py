@@ -13,15 +13,23 @@ to the previous result.
 - :func:`atomic_output_dir`: a temporary folder beside ``--out``, moved into
   place only when everything was written; on any exception (Ctrl-C included)
   the previous result stays as it was and the temporary folder is removed.
+- :func:`lock_output_dir`: one run at a time into an ``--out`` (a lock file
+  beside it, released by the kernel even after kill -9); a second run refuses.
+- :func:`recover_output_dir`: what a killed run left beside ``--out`` (the
+  previous result moved aside, a half-written temporary folder) is restored or
+  removed on the next run, which says so.
 """
 
 from __future__ import annotations
 
+import errno
+import fnmatch
 import math
 import os
 import re
 import shutil
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -31,7 +39,10 @@ from .errors import OrganlabError, SessionError
 
 __all__ = [
     "OUTPUT_NAMES",
+    "SURFACE_PATTERNS",
     "atomic_output_dir",
+    "lock_output_dir",
+    "recover_output_dir",
     "bytes_per_voxel",
     "check_grid_memory",
     "check_output_dir",
@@ -46,6 +57,9 @@ OUTPUT_NAMES = frozenset(
     {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "calibration.json", "mesh.png", "agreement.png", "surface",
      "worst_view.png"}
 )
+#: Files ``organlab mesh`` writes into ``--out/surface/``: a file there matching none of these is
+#: the user's, and a run refuses to replace the folder rather than delete it.
+SURFACE_PATTERNS = ("mesh.*", "tetra.*", "aaa.json", "aaa_measures.png", "surface_report.json")
 
 
 def check_voxel_size(voxel_size, *, name="--voxel-size"):
@@ -162,8 +176,20 @@ def check_grid_memory(roi_min, roi_max, voxel_size, *, max_memory=None, method="
     )
 
 
-def _is_output_folder(path):
-    return all(p.name in OUTPUT_NAMES for p in path.iterdir())
+def _foreign_files(path):
+    """Entries of an output folder organlab did not write (relative names, sorted)."""
+    others = sorted(p.name for p in path.iterdir() if p.name not in OUTPUT_NAMES)
+    surface = path / "surface"
+    if surface.is_symlink() or (surface.exists() and not surface.is_dir()):
+        others.append("surface")
+    elif surface.is_dir():
+        others += sorted(f"surface/{p.name}" for p in surface.iterdir()
+                         if p.is_symlink() or not p.is_file() or not any(fnmatch.fnmatchcase(p.name, pat) for pat in SURFACE_PATTERNS))
+    for name in OUTPUT_NAMES - {"surface"}:  # organlab writes files there, never folders or links
+        p = path / name
+        if p.is_symlink() or p.is_dir():
+            others.append(name)
+    return others
 
 
 def check_output_dir(out):
@@ -186,8 +212,8 @@ def check_output_dir(out):
     out = Path(out).absolute()
     if out.exists() and not out.is_dir():
         raise OrganlabError(f"{out}: --out exists and is not a folder; give a folder path")
-    if out.is_dir() and not _is_output_folder(out):
-        others = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_NAMES)
+    others = _foreign_files(out) if out.is_dir() else []
+    if others:
         raise OrganlabError(
             f"{out}: --out holds files organlab did not write ({', '.join(others[:3])}"
             f"{', ...' if len(others) > 3 else ''}); give an empty or new folder"
@@ -201,6 +227,140 @@ def check_output_dir(out):
     return out
 
 
+_held = {}  # out path -> depth of lock_output_dir in this process
+_held_lock = threading.Lock()
+
+
+def _lock_path(out):
+    return out.parent / f".{out.name}.lock"
+
+
+@contextmanager
+def lock_output_dir(out):
+    """Hold the lock of an output folder while a run writes it; recover what a killed run left.
+
+    The lock is an exclusive ``flock`` on ``.NAME.lock`` beside ``out``: the kernel
+    releases it when the process ends, kill -9 included, so a stale lock file never
+    blocks a later run (which removes it when done).  Re-entrant within a process.
+
+    Parameters
+    ----------
+    out : str or Path
+
+    Yields
+    ------
+    list of str
+        What :func:`recover_output_dir` restored or removed (empty when nothing).
+
+    Raises
+    ------
+    OrganlabError
+        Another run holds the lock (its process id named).
+    """
+    import fcntl
+
+    out = Path(out).absolute()
+    with _held_lock:
+        if _held.get(out):
+            _held[out] += 1
+            nested = True
+        else:
+            nested = False
+    if nested:
+        try:
+            yield []
+        finally:
+            with _held_lock:
+                _held[out] -= 1
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    path = _lock_path(out)
+    for _ in range(10):  # the file may be removed by the run that held it between open and lock
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise OrganlabError(f"{path}: cannot create the lock of --out ({e.strerror}); choose a writable --out") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            if e.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise
+            try:
+                pid = path.read_text().strip() or "?"
+            except OSError:
+                pid = "?"
+            raise OrganlabError(f"{out}: another organlab run (process {pid}) is writing this --out; wait for it "
+                                "to finish or give another --out") from None
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    else:
+        raise OrganlabError(f"{path}: the lock of --out keeps changing; is another run starting? try again")
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        with _held_lock:
+            _held[out] = 1
+        try:
+            yield recover_output_dir(out)
+        finally:
+            with _held_lock:
+                _held.pop(out, None)
+            try:
+                os.unlink(path)  # before the unlock: a waiting run then finds the file gone and retries
+            except OSError:
+                pass
+    finally:
+        os.close(fd)
+
+
+def recover_output_dir(out):
+    """Restore or remove what an interrupted run left beside ``out``.
+
+    A run killed between moving the previous result aside (``.NAME.old-*``) and moving
+    the new one in leaves no ``out``: the previous result is moved back.  A previous
+    result left aside when ``out`` exists, and half-written temporary folders
+    (``.NAME.tmp-*``, ``.NAME.check-*``), are removed.  Call it holding
+    :func:`lock_output_dir` (it does).
+
+    Returns
+    -------
+    list of str
+        One line per thing restored or removed.
+    """
+    out = Path(out).absolute()
+    parent = out.parent
+    if not parent.is_dir():
+        return []
+    notes = []
+    olds = sorted(parent.glob(f".{_glob_escape(out.name)}.old-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    olds = [p for p in olds if p.is_dir() and not p.is_symlink()]
+    if olds and not out.exists():
+        os.rename(olds[0], out)
+        notes.append(f"restored the previous result {out} from {olds[0].name} (a run was interrupted while "
+                     "replacing it)")
+        olds = olds[1:]
+    for p in olds:
+        shutil.rmtree(p, ignore_errors=True)
+        notes.append(f"removed {p.name}, a previous result an interrupted run had moved aside")
+    for pattern in (".{}.tmp-*", ".{}.check-*"):
+        for p in sorted(parent.glob(pattern.format(_glob_escape(out.name)))):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+                notes.append(f"removed {p.name}, the unfinished output of an interrupted run")
+    return notes
+
+
+def _glob_escape(name):
+    """``name`` with glob's special characters escaped (``[``, ``*``, ``?``)."""
+    return re.sub(r"([\[\]*?])", r"[\1]", name)
+
+
 @contextmanager
 def atomic_output_dir(out):
     """A temporary folder beside ``out`` that replaces ``out`` when the block completes.
@@ -209,7 +369,9 @@ def atomic_output_dir(out):
     normally, a previous ``out`` is moved aside, the new folder renamed to
     ``out`` and the old one removed: no file of an earlier run is left mixed
     with the new ones.  When the block raises (Ctrl-C included), the
-    temporary folder is removed and ``out`` is untouched.
+    temporary folder is removed and ``out`` is untouched.  The whole block holds
+    :func:`lock_output_dir` (a concurrent run refuses), and a killed earlier run's
+    leftovers are recovered first (:func:`recover_output_dir`).
 
     Parameters
     ----------
@@ -220,27 +382,28 @@ def atomic_output_dir(out):
     ------
     Path
     """
-    out = check_output_dir(out)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
-    try:
-        yield tmp
-        os.chmod(tmp, 0o777 & ~_umask())
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
-            os.rmdir(old)
-            os.rename(out, old)
+    with lock_output_dir(out):
+        out = check_output_dir(out)
+        tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
         try:
-            os.rename(tmp, out)
-        except OSError:
+            yield tmp
+            os.chmod(tmp, 0o777 & ~_umask())
+            old = None
+            if out.exists():
+                old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
+                os.rmdir(old)
+                os.rename(out, old)
+            try:
+                os.rename(tmp, out)
+            except OSError:
+                if old is not None:
+                    os.rename(old, out)  # put the previous result back
+                raise
             if old is not None:
-                os.rename(old, out)  # put the previous result back
+                shutil.rmtree(old, ignore_errors=True)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
             raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def _umask():

@@ -230,6 +230,7 @@ class Calibration:
         """
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+        _remove_stale_temporaries(path)
         try:
             write_json(tmp, self.to_dict())
             os.replace(tmp, path)
@@ -292,6 +293,20 @@ class Calibration:
             lines.append(f"turntable RMS {t.rms_px:.3f} px over {len(t.per_image_rms) - len(t.flagged)} images"
                          + (f" (flagged: {', '.join(t.flagged)})" if t.flagged else ""))
         return lines
+
+
+def _remove_stale_temporaries(path):
+    """Remove ``.NAME.tmpPID`` files beside ``path`` left by a process that no longer runs (a kill -9)."""
+    for p in path.parent.glob(f".{path.name}.tmp*"):
+        pid = p.name[len(path.name) + 4:]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            p.unlink(missing_ok=True)
+        except OSError:  # alive, someone else's
+            pass
 
 
 # ================================================================= session glue
