@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 
 from ._cliparser import OneLineParser as _Parser
+from ._validate import printable
 from .errors import OrganlabError
 
 
@@ -359,10 +360,10 @@ def _reconstruct_locked(a):
     print(f"  wrote {', '.join(p.name for p in paths.values())}")
     for what in ("intrinsic", "turntable"):
         for name, why in rec.report.get("calibration", {}).get(f"{what}_rejected", {}).items():
-            print(f"  {what} image {name} not used: {why}")
+            print(f"  {what} image {printable(name)} not used: {printable(why)}")
     warnings = rec.report.get("warnings", [])
     for w in warnings:
-        print(f"organlab: warning: {w}", file=sys.stderr)
+        print(f"organlab: warning: {printable(w)}", file=sys.stderr)
     if warnings and a.strict:
         print(f"organlab: error: {len(warnings)} warning(s) and --strict", file=sys.stderr)
         return 2
@@ -414,7 +415,7 @@ def _calibrate(a):
         print(f"  {line}")
     for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
         for name, why in (fit.rejected.items() if fit is not None else ()):
-            print(f"  {what} image {name} not used: {why}")
+            print(f"  {what} image {printable(name)} not used: {printable(why)}")
     print(f"  {len(figs)} check figures in {Path(figs[0]).parent if figs else '-'}")
     for w in cal.warnings():
         print(f"organlab: warning: {w}", file=sys.stderr)
@@ -498,8 +499,8 @@ def main(argv=None):
                    "mesh": _mesh, "init": _init}[args.command]
     try:
         return handler(args)
-    except OrganlabError as e:
-        print(f"organlab: error: {e}", file=sys.stderr)
+    except OrganlabError as e:  # one line: text from files (names, paths) with its control characters escaped
+        print(f"organlab: error: {printable(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("organlab: interrupted", file=sys.stderr)
