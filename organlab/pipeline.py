@@ -324,9 +324,10 @@ def _finish_and_measure(session, mesh, volume, grid, finish, measure, footprint=
 
 def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory):
     """Before the long work: the grid's memory (organlab.preflight), a finite colour threshold."""
-    from .preflight import check_grid_memory
+    from .preflight import check_grid_memory, check_image_memory
 
     check_tolerance(tolerance, len(session.views))  # a negative one: one line before the long work
+    check_image_memory(session.image_size, len(session.views), max_memory=max_memory, where=str(session.json_path))
 
     if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
         raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")

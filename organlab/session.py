@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ._validate import inside, printable, read_json
+from .preflight import image_header_size
 from .camera import Camera, nearest_rotation
 from .errors import SessionError
 
@@ -29,6 +30,9 @@ __all__ = [
 ]
 
 FORMAT = "organlab.session/1"
+
+#: Images above this many pixels are checked at load from their headers only (not decoded twice).
+_DECODE_CHECK_MAX_PX = 50_000_000
 
 #: Largest roi coordinate accepted, mm: an roi of 1e308 mm overflowed the grid's shape.
 ROI_LIMIT_MM = 1e5
@@ -160,6 +164,10 @@ def read_image(path, *, size=None, key="image", grey=False, session=None):
     shown = session.relpath(path) if session is not None else str(path)
     if not path.is_file():
         _fail(where, key, f"image '{shown}' does not exist; check the path (relative to the session folder)")
+    header = image_header_size(path)  # before decoding: a 20000x20000 PNG is 1.2 MB on disk, 1.2 GB decoded
+    if size is not None and header is not None and header != tuple(size):
+        _fail(where, key, f"image '{shown}' is {header[0]}x{header[1]} px but image_size is {size[0]}x{size[1]}; "
+                          "every image of a session must have the same size")
     data = np.fromfile(str(path), dtype=np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
@@ -474,7 +482,10 @@ def _check_images(s):
         items.append((v.image, f"views[{i}].image"))
         if v.mask is not None:
             items.append((v.mask, f"views[{i}].mask"))
+    big = s.image_size[0] * s.image_size[1] > _DECODE_CHECK_MAX_PX
     for p, key in items:
+        if big and image_header_size(p) == tuple(s.image_size):
+            continue  # its header is checked; decoding is left to the run (after its memory pre-flight)
         s.read(p, key=key)
 
 
