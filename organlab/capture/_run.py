@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
+from .._validate import read_json
 from ._errors import CaptureError
 
 __all__ = ["run_capture", "read_intrinsics"]
@@ -20,8 +20,8 @@ def read_intrinsics(path, image_size=None):
     from ..camera import Camera
 
     p = Path(path)
+    doc = read_json(p, error=CaptureError, fix="give a calibration.json or session.json with 'camera'")
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
         cam = doc["camera"]
         return Camera(cam["K"], cam["dist"], image_size=image_size or cam.get("image_size") or doc.get("image_size"))
     except (OSError, ValueError, KeyError, TypeError) as e:
