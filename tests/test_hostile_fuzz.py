@@ -204,3 +204,130 @@ def test_report_json_is_strict_json_even_with_a_non_finite_number(tmp_path):
     text = (tmp_path / "r.json").read_text()
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text, parse_constant=lambda c: pytest.fail(c)) == {"a": None, "b": [None, 1.5], "c": [None, 2.0]}
+
+
+# ------------------------------------------------------------- binary readers: voxels.npz, meshes, camera files
+@st.composite
+def corrupted(draw, data):
+    """``data`` truncated, with bytes flipped, or with a slice repeated (bytes)."""
+    data = bytearray(data)
+    kind = draw(st.sampled_from(["truncate", "flip", "flip", "repeat"]))
+    if kind == "truncate":
+        return bytes(data[: draw(st.integers(0, len(data)))])
+    if kind == "repeat":
+        a = draw(st.integers(0, len(data)))
+        return bytes(data[:a] + data[a: a + 64] * draw(st.integers(2, 50)) + data[a:])
+    for _ in range(draw(st.integers(1, 8))):
+        i = draw(st.integers(0, max(0, len(data) - 1)))
+        if data:
+            data[i] = draw(st.integers(0, 255))
+    return bytes(data)
+
+
+_arrays = st.one_of(
+    st.sampled_from([np.zeros(0), np.zeros((2, 2)), np.full(3, np.nan), np.array(np.inf), np.array(-1.0), np.array(0.0),
+                     np.array([1e308, 0, 0]), np.array(["a", "b"]), np.zeros((1, 1, 1, 1), bool), np.array(3),
+                     np.ones((3, 0, 2), bool), np.zeros((4, 4, 4), np.float32)]),
+    st.integers(-3, 3).map(lambda k: np.array(k)),
+)
+
+
+@pytest.fixture(scope="module")
+def result_dir(tmp_path_factory):
+    """A small reconstruction's voxels.npz and mesh.ply (a 2 mm ball carved from a field, no session)."""
+    from organlab.grid import VoxelGrid
+    from organlab.surface import mesh_from_volume, write_ply
+
+    folder = tmp_path_factory.mktemp("result")
+    grid = VoxelGrid((-10.0, -10.0, -10.0), 2.0, (10, 10, 10))
+    c = (np.indices(grid.shape).T + 0.5).T * 2.0 - 10.0
+    field = np.clip(8.0 - np.sqrt((c ** 2).sum(0)), 0, 1).astype(np.float32)
+    np.savez_compressed(folder / "voxels.npz", occupancy=field > 0.5, origin_mm=np.array(grid.origin, float),
+                        voxel_size_mm=np.float64(2.0), field=field)
+    write_ply(folder / "mesh.ply", mesh_from_volume(field, grid, level=0.5))
+    return folder
+
+
+@pytest.mark.slow
+def test_voxels_npz_reader(result_dir, tmp_path_factory):
+    from organlab.surface import load_voxels
+
+    good = dict(np.load(result_dir / "voxels.npz"))
+    raw = (result_dir / "voxels.npz").read_bytes()
+    folder = tmp_path_factory.mktemp("vox")
+
+    @FUZZ
+    @given(st.one_of(
+        st.tuples(st.just("arrays"), st.sampled_from(sorted(good)), st.one_of(st.none(), _arrays)),
+        st.tuples(st.just("bytes"), corrupted(raw), st.none()),
+    ))
+    def check(case):
+        kind, a, b = case
+        if kind == "arrays":
+            arrays = dict(good)
+            if b is None:
+                del arrays[a]
+            else:
+                arrays[a] = b
+            np.savez(folder / "voxels.npz", **arrays)
+        else:
+            (folder / "voxels.npz").write_bytes(a)
+        out = _accept(lambda: load_voxels(folder))
+        if out is not None:
+            vol, grid = out
+            assert vol.ndim == 3 and vol.shape == tuple(grid.shape) and np.all(np.isfinite(vol))
+            assert np.isfinite(grid.voxel_size) and grid.voxel_size > 0 and np.all(np.isfinite(grid.origin))
+
+    check()
+
+
+@pytest.mark.slow
+def test_mesh_reader(result_dir, tmp_path_factory):
+    from organlab.surface import read_ply
+
+    raw = (result_dir / "mesh.ply").read_bytes()
+    path = tmp_path_factory.mktemp("ply") / "mesh.ply"
+
+    @FUZZ
+    @given(st.one_of(corrupted(raw), st.sampled_from([
+        raw.replace(b"element vertex", b"element vertex 99999999999 "),
+        raw.replace(b"element face", b"element face -5 "), b"ply\nend_header\n", b"", b"\xff" * 100])))
+    def check(data):
+        path.write_bytes(data)
+        mesh = _accept(lambda: read_ply(path))
+        if mesh is not None:
+            v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+            assert v.ndim == 2 and v.shape[1] == 3 and f.ndim == 2 and f.shape[1] == 3
+            assert f.size == 0 or (f.min() >= 0 and f.max() < len(v))
+
+    check()
+
+
+@pytest.mark.slow
+def test_camera_file_readers(tmp_path_factory):
+    from organlab.calibio import read_camera, write_bouguet, write_opencv
+    from organlab.camera import Camera
+
+    folder = tmp_path_factory.mktemp("camfiles")
+    cam = Camera([[400.0, 0, 160], [0, 401, 120], [0, 0, 1]], [-0.2, 0.05, 0.001, 0, 0], image_size=(320, 240))
+    files = {".m": write_bouguet(folder / "Calib_Results.m", cam).read_bytes(),
+             ".yml": write_opencv(folder / "cam.yml", cam).read_bytes(),
+             ".xml": write_opencv(folder / "cam.xml", cam).read_bytes(),
+             ".json": json.dumps({"camera": {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "image_size": [320, 240]}}).encode()}
+
+    @FUZZ
+    @given(st.sampled_from(sorted(files)).flatmap(lambda ext: st.tuples(st.just(ext), st.one_of(
+        corrupted(files[ext]),
+        st.sampled_from([b"fc = [ NaN ; 400 ];\ncc = [ 1 ; 2 ];\nnx = 320;\nny = 240;\n",
+                         b"fc = [ 1e999 ; 400 ];\ncc = [ 1 ; 2 ];\nnx = -3;\nny = 240;\n",
+                         b"%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ .nan, 0, 1, 0, 1, 1, 0, 0, 1 ]\n",
+                         b"\x00" * 50])))))
+    def check(case):
+        ext, data = case
+        path = folder / f"fuzz{ext}"
+        path.write_bytes(data)
+        c = _accept(lambda: read_camera(path, image_size=(320, 240)))
+        if c is not None:
+            assert np.all(np.isfinite(c.K)) and np.all(np.isfinite(c.dist)) and min(c.image_size) > 0
+
+    check()
