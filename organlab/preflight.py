@@ -484,6 +484,11 @@ def atomic_output_dir(out):
                 raise
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
+        except OSError as e:  # a full disk, a folder made read-only meanwhile: one line, the previous result intact
+            shutil.rmtree(tmp, ignore_errors=True)
+            what = f" ({e.filename})" if e.filename else ""
+            raise OrganlabError(f"{out}: cannot write the outputs: {e.strerror or e}{what}; free some space or choose "
+                                "another --out (a previous result there is left as it was)") from None
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise

@@ -127,3 +127,60 @@ def test_kill_9_at_random_points_then_the_same_command_leaves_a_complete_result(
     report = json.loads((out / "report.json").read_text())
     assert report["volume_mm3"] == reference["volume_mm3"] and report["grid"] == reference["grid"]
     assert {p.name for p in out.iterdir()} >= {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "calibration.json"}
+
+
+def test_full_disk_while_writing_is_one_line_and_keeps_the_previous_result(tmp_path):
+    import errno
+
+    out = _result(tmp_path / "out", '{"run": 1}')
+    with pytest.raises(OrganlabError) as e:
+        with atomic_output_dir(out) as tmp:
+            (tmp / "report.json").write_text("{}")
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "mesh.stl"))
+    assert "No space left on device" in str(e.value) and "\n" not in str(e.value)
+    assert (out / "report.json").read_text() == '{"run": 1}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_mesh_of_an_empty_model_is_one_line(tmp_path, capsys):
+    import numpy as np
+
+    np.savez_compressed(tmp_path / "voxels.npz", occupancy=np.zeros((4, 4, 4), bool), origin_mm=np.zeros(3),
+                        voxel_size_mm=np.float64(2.0))
+    assert main(["mesh", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "the model is empty" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "surface").exists()
+
+
+def test_full_disk_during_capture_keeps_what_was_taken_and_a_rerun_completes(tmp_path, monkeypatch):
+    import errno
+
+    from organlab.capture import CaptureError, SimRig, capture_session
+    from organlab.capture import _session as cs
+
+    real, calls = cs._write_png, []
+
+    def full_after_5(root, rel, image):
+        calls.append(rel)
+        if len(calls) > 5:
+            raise OSError(errno.ENOSPC, "No space left on device", str(root / rel))
+        return real(root, rel, image)
+
+    root = tmp_path / "s"
+    monkeypatch.setattr(cs, "_write_png", full_after_5)
+    with SimRig(time_scale=20.0, image_size=(320, 240)) as rig:
+        with rig.turntable(timeout=0.2, poll_interval=0.005) as t, pytest.raises(CaptureError) as e:
+            capture_session(root, t, rig.camera(), step_deg=90.0, n_background=1, intrinsics=rig.camera_model,
+                            prompt=rig.prompt, say=lambda s: None)
+    assert "No space left on device" in str(e.value) and "\n" not in str(e.value)
+    doc = json.loads((root / "session.json").read_text())
+    listed = doc["background_images"] + [x["image"] for x in doc["calibration"]["turntable_images"] + doc["views"]]
+    assert len(listed) == 5 and all((root / p).is_file() for p in listed)  # nothing taken is lost
+    monkeypatch.setattr(cs, "_write_png", real)
+    with SimRig(time_scale=20.0, image_size=(320, 240)) as rig:
+        with rig.turntable(timeout=0.2, poll_interval=0.005) as t:
+            capture_session(root, t, rig.camera(), step_deg=90.0, n_background=1, intrinsics=rig.camera_model,
+                            prompt=rig.prompt, say=lambda s: None)
+    doc = json.loads((root / "session.json").read_text())
+    assert doc["capture"]["complete"] and len(doc["views"]) == 4

@@ -414,6 +414,15 @@ def capture_session(
         doc["capture"]["last_error"] = str(e)
         run.save()
         raise
+    except OSError as e:  # a full disk or a folder gone read-only: what is listed is on disk; one line
+        msg = (f"{root}: cannot write the capture ({e.strerror or e}{f': {e.filename}' if e.filename else ''}); free "
+               "some space and run the same command again to continue")
+        doc["capture"]["last_error"] = msg
+        try:
+            run.save()
+        except OSError:
+            pass  # session.json keeps the images listed at its last save (each written before it is listed)
+        raise CaptureError(msg) from None
     doc["capture"]["complete"] = True
     doc["capture"].pop("last_error", None)
     run.save()

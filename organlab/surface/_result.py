@@ -85,6 +85,9 @@ def load_voxels(result_dir):
                 raise OrganlabError(f"{path}: missing array {e}; {fix}") from None
             if occ.ndim != 3 or occ.dtype.kind not in "bui" or 0 in occ.shape:
                 raise OrganlabError(f"{path}: occupancy: {occ.dtype} {occ.shape}, expected (nx, ny, nz) booleans; {fix}")
+            if not occ.any():
+                raise OrganlabError(f"{path}: occupancy: the model is empty (no voxel kept), there is no surface to "
+                                    "make; check the reconstruction's warnings and reconstruct again")
             grid = VoxelGrid(origin, vs, occ.shape)
             if "colors" in z.files:  # colouring carved voxels the field knows nothing of
                 vol = occ
