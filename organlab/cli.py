@@ -74,6 +74,16 @@ def _check_listen(host, port, option="--port"):
     return 8080 if port is None else port
 
 
+def _loopback(host):
+    import ipaddress
+    import socket
+
+    try:
+        return all(ipaddress.ip_address(info[4][0]).is_loopback for info in socket.getaddrinfo(host, 0))
+    except (OSError, ValueError, UnicodeError):
+        return False
+
+
 def _start_server(start, what):
     """``start()``, with an exception of a thread started meanwhile (the server's) ending it in one line.
 
@@ -259,6 +269,10 @@ def _view(a):
     from .viewer import SessionViewer
 
     port = _check_listen(a.host, a.port)
+    if not _loopback(a.host):
+        print(f"organlab: warning: --host {printable(a.host)} is not this machine only: anyone who can reach it gets "
+              "the session's photos and can start reconstructions, with no access control; use 127.0.0.1 "
+              "(and an SSH tunnel) unless the network is trusted", file=sys.stderr)
     app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=port),
                         "organlab view")
     print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")

@@ -76,3 +76,10 @@ def test_server_thread_failure_reaches_the_main_thread():
 def test_sim_size_zero_is_one_line(tmp_path):
     _one_line(_run(["capture", "--turntable", "sim", "--out", str(tmp_path / "c"), "--sim-size", "0x0", "--quiet"]),
               "--sim-size")
+
+
+def test_non_loopback_host_is_warned_about():
+    from organlab.cli import _loopback
+
+    assert _loopback("127.0.0.1") and _loopback("localhost") and _loopback("::1")
+    assert not _loopback("0.0.0.0") and not _loopback("192.0.2.1")
