@@ -150,6 +150,8 @@ def _parser():
                    help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
     r.add_argument("--measure", action="store_true", help="AAA measurements in the report (default: when the session is an AAA)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
+    r.add_argument("--allow-outside-paths", action="store_true",
+                   help="accept image paths in session.json that lead out of the session folder (.., absolute, symlinks)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
     c.add_argument("session", type=Path)
@@ -350,8 +352,13 @@ def _reconstruct_locked(a):
 
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
+    session = a.session
+    if a.allow_outside_paths:
+        from .session import load_session
+
+        session = load_session(a.session, allow_outside_paths=True)
     rec = reconstruct(
-        a.session,
+        session,
         voxel_size=a.voxel_size,
         threshold=a.threshold,
         method=a.method,

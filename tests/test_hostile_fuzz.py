@@ -331,3 +331,17 @@ def test_camera_file_readers(tmp_path_factory):
             assert np.all(np.isfinite(c.K)) and np.all(np.isfinite(c.dist)) and min(c.image_size) > 0
 
     check()
+
+
+def test_cli_refuses_outside_paths_unless_allowed(small, tmp_path, capsys):
+    from organlab.cli import main
+
+    root = tmp_path / "s"
+    shutil.copytree(small, root, ignore=shutil.ignore_patterns("calibration_check"))
+    doc = json.loads((root / "session.json").read_text())
+    shutil.copy(root / doc["views"][0]["image"], tmp_path / "outside.png")
+    doc["views"][0]["image"] = "../outside.png"
+    (root / "session.json").write_text(json.dumps(doc))
+    assert main(["reconstruct", str(root), "--out", str(tmp_path / "o"), "--quiet", "--voxel-size", "8"]) == 2
+    err = capsys.readouterr().err
+    assert "outside the session folder" in err and len(err.strip().splitlines()) == 1
