@@ -298,7 +298,7 @@ def _mesh_parser(sub):
 def _mesh(a):
     from .preflight import lock_output_dir
 
-    with lock_output_dir(a.result):  # not while a reconstruct replaces the same folder
+    with lock_output_dir(a.result, required=False):  # not while a reconstruct replaces the same folder
         return _mesh_locked(a)
 
 

@@ -319,7 +319,7 @@ def _lock_path(out):
 
 
 @contextmanager
-def lock_output_dir(out):
+def lock_output_dir(out, *, required=True):
     """Hold the lock of an output folder while a run writes it; recover what a killed run left.
 
     The lock is an exclusive ``flock`` on ``.NAME.lock`` beside ``out``: the kernel
@@ -329,6 +329,9 @@ def lock_output_dir(out):
     Parameters
     ----------
     out : str or Path
+    required : bool
+        False: when the lock file cannot be created (a read-only parent folder), go on
+        without it (for commands that write only inside ``out``).
 
     Yields
     ------
@@ -356,12 +359,15 @@ def lock_output_dir(out):
             with _held_lock:
                 _held[out] -= 1
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     path = _lock_path(out)
     for _ in range(10):  # the file may be removed by the run that held it between open and lock
         try:
+            out.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as e:
+            if not required:
+                yield []
+                return
             raise OrganlabError(f"{path}: cannot create the lock of --out ({e.strerror}); choose a writable --out") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
