@@ -203,6 +203,9 @@ class Camera:
 
     def __post_init__(self):
         K = np.array(self.K, dtype=np.float64)
+        for name, value in (("K", K), ("dist", self.dist), ("R", self.R), ("t", self.t)):
+            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=np.float64))):
+                raise ValueError(f"{name} must hold finite numbers, got {np.asarray(value).tolist()}")
         if K.shape != (3, 3) or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
             raise ValueError(f"K must be an upper-triangular 3x3 matrix with last row [0, 0, 1], got {K.tolist()}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:

@@ -27,11 +27,12 @@ from pathlib import Path
 from .agreement import model_mask
 from .calibration import calibrate, export_cameras
 from .capture import run_capture
+from .validate import printable
 from .cliparser import OneLineParser as _Parser
 from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
 from .pipeline import reconstruct, summary_table, write_outputs
-from .preflight import atomic_output_dir, check_output_dir, parse_memory
+from .preflight import atomic_output_dir, check_output_dir, lock_output_dir, parse_memory
 from .progress import NullProgress, ProgressBar
 from .scaffold import init_session
 from .session import load_session
@@ -51,6 +52,85 @@ def _positive_float(text):
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return v
+
+
+def _port(text):
+    """A TCP port, 0 (any free one) to 65535: a bad one ends in one line, before a server starts."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port from 0 to 65535 (0: any free port), got {v}")
+    return v
+
+
+def _check_listen(host, port, option="--port"):
+    """Bind ``host:port`` once in this thread, so that what the server thread would die of is one line here.
+
+    ``port`` None: the default 8080, or the next free port when taken (viser's search);
+    an explicit port in use is refused.
+    """
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, 0 if port is None else port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError, ValueError) as e:
+        raise OrganlabError(f"--host {host!r}: not an address of this machine ({e}); use 127.0.0.1") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        try:
+            sock.bind(addr)
+        except OSError as e:
+            if port is not None and e.errno in (98, 48, 10048):  # EADDRINUSE (Linux, macOS, Windows)
+                raise OrganlabError(f"{option} {port}: already in use on {host}; give another port, or 0 for any "
+                                    "free one") from None
+            raise OrganlabError(f"cannot listen on {host}:{port if port is not None else 0} ({e.strerror or e}); "
+                                "use --host 127.0.0.1 and another --port") from None
+    return 8080 if port is None else port
+
+
+def _loopback(host):
+    import ipaddress
+    import socket
+
+    try:
+        return all(ipaddress.ip_address(info[4][0]).is_loopback for info in socket.getaddrinfo(host, 0))
+    except (OSError, ValueError, UnicodeError):
+        return False
+
+
+def _start_server(start, what):
+    """``start()``, with an exception of a thread started meanwhile (the server's) ending it in one line.
+
+    viser starts its server in a thread and waits for it; a thread that dies before it is ready
+    (a port it cannot bind) left the main thread waiting for ever.  The thread's exception is
+    caught here, the wait interrupted (SIGINT to the main thread) and one line raised.
+    """
+    import signal
+    import threading
+
+    failed = []
+    previous = threading.excepthook
+
+    def hook(args):
+        if args.thread is not threading.main_thread() and not failed:
+            failed.append(args.exc_value)
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        else:
+            previous(args)
+
+    threading.excepthook = hook
+    try:
+        return start()
+    except KeyboardInterrupt:
+        if failed:
+            e = failed[0]
+            raise OrganlabError(f"{what}: the server could not start ({type(e).__name__}: {e}); "
+                                "check --host and --port") from None
+        raise
+    finally:
+        threading.excepthook = previous
 
 
 def _parser():
@@ -86,6 +166,8 @@ def _parser():
                    help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
     r.add_argument("--measure", action="store_true", help="AAA measurements in the report (default: when the session is an AAA)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
+    r.add_argument("--allow-outside-paths", action="store_true",
+                   help="accept image paths in session.json that lead out of the session folder (.., absolute, symlinks)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
     c.add_argument("session", type=Path)
@@ -96,6 +178,7 @@ def _parser():
                        help="write them into the session folder (later reconstructions reuse its calibration.json)")
     c.add_argument("--figures", type=Path, default=None, metavar="DIR",
                    help="where to write the check figures (default: calibration_check beside calibration.json)")
+    c.add_argument("--force", action="store_true", help="with --out: replace the calibration.json already in DIR")
     c.add_argument("--quiet", action="store_true")
 
     _init_parser(sub)
@@ -208,7 +291,8 @@ def _capture_parser(sub):
     k.add_argument("--quiet", action="store_true")
     k.add_argument("--view", action="store_true", help="watch the capture in the live 3D viewer (browser): each view at "
                    "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
-    k.add_argument("--port", type=int, default=8080, help="with --view: TCP port on 127.0.0.1 (default 8080; the next free one if taken)")
+    k.add_argument("--port", type=_port, default=None, help="with --view: TCP port on 127.0.0.1 (default 8080, the next "
+                   "free one if taken; a port given and taken is refused)")
     k.add_argument("--view-voxel-size", type=_positive_float, default=2.0, metavar="MM",
                    help="with --view: voxel edge of the live hull in mm (default 2)")
 
@@ -219,7 +303,8 @@ def _add_view_parser(sub):
     v.add_argument("session", type=Path, help="session folder (holds session.json)")
     v.add_argument("--result", type=Path, default=None, metavar="DIR",
                    help="show a folder written by 'organlab reconstruct' instead of reconstructing at start")
-    v.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
+    v.add_argument("--port", type=_port, default=None, help="TCP port (default 8080, the next free one if taken; a port "
+                   "given and taken is refused)")
     v.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     v.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
 
@@ -227,7 +312,13 @@ def _add_view_parser(sub):
 def _view(a):
     import time
 
-    app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port)
+    port = _check_listen(a.host, a.port)
+    if not _loopback(a.host):
+        print(f"organlab: warning: --host {printable(a.host)} is not this machine only: anyone who can reach it gets "
+              "the session's photos and can start reconstructions, with no access control; use 127.0.0.1 "
+              "(and an SSH tunnel) unless the network is trusted", file=sys.stderr)
+    app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=port),
+                        "organlab view")
     print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
     try:
         while True:
@@ -247,6 +338,11 @@ def _mesh_parser(sub):
 
 
 def _mesh(a):
+    with lock_output_dir(a.result, required=False):  # not while a reconstruct replaces the same folder
+        return _mesh_locked(a)
+
+
+def _mesh_locked(a):
     steps = a.repair or a.smooth or a.remesh is not None
     # no step named: all of them, remeshing at 1.5 voxels
     report, paths = mesh_result(
@@ -278,10 +374,18 @@ def _bars(quiet):
 
 
 def _reconstruct(a):
+    with lock_output_dir(a.out) as recovered:  # one run at a time into --out; a killed run's leftovers recovered
+        for note in recovered:
+            print(f"organlab: {note}", file=sys.stderr)
+        return _reconstruct_locked(a)
+
+
+def _reconstruct_locked(a):
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
+    session = load_session(a.session, allow_outside_paths=True) if a.allow_outside_paths else a.session
     try:
-        rec = _run_reconstruct(a, max_memory)
+        rec = _run_reconstruct(a, session, max_memory)
     except SettingsError as e:  # the library names its parameter; the user typed a flag
         raise OrganlabError(e.for_flag(_FLAGS.get(e.parameter, f"--{e.parameter.replace('_', '-')}"))) from None
     with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
@@ -293,19 +397,19 @@ def _reconstruct(a):
     print(f"  wrote {', '.join(p.name for p in paths.values())}")
     for what in ("intrinsic", "turntable"):
         for name, why in rec.report.get("calibration", {}).get(f"{what}_rejected", {}).items():
-            print(f"  {what} image {name} not used: {why}")
+            print(f"  {what} image {printable(name)} not used: {printable(why)}")
     warnings = rec.report.get("warnings", [])
     for w in warnings:
-        print(f"organlab: warning: {w}", file=sys.stderr)
+        print(f"organlab: warning: {printable(w)}", file=sys.stderr)
     if warnings and a.strict:
         print(f"organlab: error: {len(warnings)} warning(s) and --strict", file=sys.stderr)
         return 2
     return 0
 
 
-def _run_reconstruct(a, max_memory):
+def _run_reconstruct(a, session, max_memory):
     return reconstruct(
-        a.session,
+        session,
         voxel_size=a.voxel_size,
         threshold=a.threshold,
         method=a.method,
@@ -346,6 +450,8 @@ def _calibrate(a):
     out = session.root if a.in_place else a.out
     if out.exists() and not out.is_dir():
         raise OrganlabError(f"{out}: exists and is not a folder; give --out a folder")
+    if not a.in_place and (out / "calibration.json").exists() and not a.force:
+        raise OrganlabError(f"{out / 'calibration.json'}: already exists; give --force to replace it, or another --out")
     bar = _bars(a.quiet)("calibration")
     cal = calibrate(session, progress=bar)
     bar.close()
@@ -357,7 +463,7 @@ def _calibrate(a):
         print(f"  {line}")
     for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
         for name, why in (fit.rejected.items() if fit is not None else ()):
-            print(f"  {what} image {name} not used: {why}")
+            print(f"  {what} image {printable(name)} not used: {printable(why)}")
     print(f"  {len(figs)} check figures in {Path(figs[0]).parent if figs else '-'}")
     for w in cal.warnings():
         print(f"organlab: warning: {w}", file=sys.stderr)
@@ -372,6 +478,8 @@ def _capture(a):
         w, h = (int(v) for v in a.sim_size.lower().split("x"))
     except ValueError:
         raise OrganlabError(f"--sim-size must be WIDTHxHEIGHT, e.g. 640x480, got {a.sim_size!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise OrganlabError(f"--sim-size must be WIDTHxHEIGHT with each side in 16-8192 px, got {a.sim_size!r}")
     sim = {k: drive[k] for k in ("steps_per_rev", "microsteps", "gear_ratio")}
     sim["time_scale"] = 10.0  # simulated moves 10x faster than the real table
     viewer = _capture_viewer(a)
@@ -402,7 +510,8 @@ def _capture_viewer(a):
     if a.no_board:
         raise OrganlabError("--view needs the board images on the table (the views' camera poses come from them); "
                             "drop --no-board or --view")
-    viewer = CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=a.port)
+    port = _check_listen("127.0.0.1", a.port)
+    viewer = _start_server(lambda: CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=port), "organlab capture --view")
     print(f"organlab capture: live view at {viewer.url}  (the hull appears with the first view)")
     return viewer
 
@@ -433,8 +542,8 @@ def main(argv=None):
                    "export-cameras": _export_cameras}[args.command]
     try:
         return handler(args)
-    except OrganlabError as e:
-        print(f"organlab: error: {e}", file=sys.stderr)
+    except OrganlabError as e:  # one line: text from files (names, paths) with its control characters escaped
+        print(f"organlab: error: {printable(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("organlab: interrupted", file=sys.stderr)

@@ -39,13 +39,14 @@ from typing import Any
 import numpy as np
 
 from . import __version__, surface
+from .checks import model_warnings
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
 from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
-from .preflight import atomic_output_dir, check_grid_memory
+from .preflight import atomic_output_dir, check_grid_memory, check_image_memory
 from .progress import NullProgress
 from .session import Session, load_session, write_json
 from .silhouette import Silhouette, SilhouetteModel, silhouette
@@ -756,6 +757,8 @@ class Engine:
         where = "the views" if self.session is None else str(self.session.json_path)
         check_grid_memory(lo, hi, settings.voxel_size, max_memory=self.max_memory, method=settings.method,
                           tolerance=int(settings.tolerance), where=where)
+        if self.session is not None:  # the decoded views too, from their headers (organlab.preflight)
+            check_image_memory(self.session.image_size, len(self.views), max_memory=self.max_memory, where=where)
 
     def _stage(self, name, settings, clock, out=None, notify=None):
         key = self.key(name, settings)
@@ -912,6 +915,9 @@ class Engine:
         if cal.turntable is not None:
             report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
         report["warnings"].extend(cal.warnings())
+        lo, hi = self.roi(settings)  # a model too big: too few views, a narrow span, the roi's faces touched
+        report["warnings"][:0] = model_warnings(cameras, occupancy, lo, hi, voxel_size=grid.voxel_size,
+                                                tolerance=int(settings.tolerance))
         return ChecksStage(agr, figures, report)
 
     def _angle_suggestions(self, grid, sils, cal, agr, names):

@@ -13,15 +13,23 @@ to the previous result.
 - :func:`atomic_output_dir`: a temporary folder beside ``--out``, moved into
   place only when everything was written; on any exception (Ctrl-C included)
   the previous result stays as it was and the temporary folder is removed.
+- :func:`lock_output_dir`: one run at a time into an ``--out`` (a lock file
+  beside it, released by the kernel even after kill -9); a second run refuses.
+- :func:`recover_output_dir`: what a killed run left beside ``--out`` (the
+  previous result moved aside, a half-written temporary folder) is restored or
+  removed on the next run, which says so.
 """
 
 from __future__ import annotations
 
+import errno
+import fnmatch
 import math
 import os
 import re
 import shutil
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -31,8 +39,14 @@ from .errors import OrganlabError, SessionError
 
 __all__ = [
     "OUTPUT_NAMES",
+    "SURFACE_PATTERNS",
     "atomic_output_dir",
+    "lock_output_dir",
+    "recover_output_dir",
+    "IMAGE_BYTES_PER_PIXEL",
     "bytes_per_voxel",
+    "check_image_memory",
+    "image_header_size",
     "check_grid_memory",
     "check_output_dir",
     "check_voxel_size",
@@ -46,6 +60,9 @@ OUTPUT_NAMES = frozenset(
     {"report.json", "voxels.npz", "mesh.ply", "mesh.stl", "calibration.json", "mesh.png", "agreement.png", "surface",
      "worst_view.png"}
 )
+#: Files ``organlab mesh`` writes into ``--out/surface/``: a file there matching none of these is
+#: the user's, and a run refuses to replace the folder rather than delete it.
+SURFACE_PATTERNS = ("mesh.*", "tetra.*", "aaa.json", "aaa_measures.png", "surface_report.json")
 
 
 def check_voxel_size(voxel_size, *, name="--voxel-size"):
@@ -162,8 +179,100 @@ def check_grid_memory(roi_min, roi_max, voxel_size, *, max_memory=None, method="
     )
 
 
-def _is_output_folder(path):
-    return all(p.name in OUTPUT_NAMES for p in path.iterdir())
+#: Peak memory of the pipeline per pixel of every view, bytes, before the voxel grid: the RGB
+#: image (3), the silhouette model's coverage, distance and mask arrays.  Measured with
+#: tracemalloc on a 320x240 synthetic session (12 views, 5 background frames): 3.0 B/px after
+#: reading the views, 61 held and 67 at the peak after the silhouettes; 70 leaves a margin.
+IMAGE_BYTES_PER_PIXEL = 70
+
+
+def image_header_size(path):
+    """``(width, height)`` of a PNG or JPEG from its header, without decoding it (None if unknown).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib, cv2, numpy as np
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.png"
+    >>> _ = cv2.imwrite(str(p), np.zeros((3, 5), np.uint8))
+    >>> image_header_size(p)
+    (5, 3)
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 20)  # headers: PNG 24 bytes; a JPEG's SOF follows its EXIF/ICC segments (< 1 MB)
+    except OSError:
+        return None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 < len(head):
+        if head[i] != 0xFF:
+            return None
+        marker = head[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = int.from_bytes(head[i + 2:i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+            return int.from_bytes(head[i + 7:i + 9], "big"), int.from_bytes(head[i + 5:i + 7], "big")
+        i += 2 + length
+    return None
+
+
+def check_image_memory(image_size, n_images, *, max_memory=None, where="session"):
+    """Refuse views whose decoding and silhouettes would not fit in memory, before any is decoded.
+
+    Parameters
+    ----------
+    image_size : (2,) int
+        ``(width, height)`` px of every view (checked against each file's header when
+        the session is loaded).
+    n_images : int
+        Views read at once.
+    max_memory : int, optional
+        Bytes; default :func:`available_memory`.
+    where : str
+
+    Returns
+    -------
+    int
+        Estimated bytes (:data:`IMAGE_BYTES_PER_PIXEL` per pixel of every view).
+
+    Raises
+    ------
+    SessionError
+    """
+    w, h = (int(v) for v in image_size)
+    need = float(w) * h * int(n_images) * IMAGE_BYTES_PER_PIXEL
+    limit = available_memory() if max_memory is None else int(max_memory)
+    if need > limit:
+        src = "--max-memory" if max_memory is not None else "the memory available now"
+        raise SessionError(
+            f"{where}: image_size: {n_images} views of {w}x{h} px need about {_fmt_bytes(need)} to read and "
+            f"segment, more than {_fmt_bytes(limit)} ({src}); downscale the images, use fewer views, or raise "
+            "--max-memory")
+    return int(need)
+
+
+def _foreign_files(path):
+    """Entries of an output folder organlab did not write (relative names, sorted)."""
+    others = sorted(p.name for p in path.iterdir() if p.name not in OUTPUT_NAMES)
+    surface = path / "surface"
+    if surface.is_symlink() or (surface.exists() and not surface.is_dir()):
+        others.append("surface")
+    elif surface.is_dir():
+        others += sorted(f"surface/{p.name}" for p in surface.iterdir()
+                         if p.is_symlink() or not p.is_file() or not any(fnmatch.fnmatchcase(p.name, pat) for pat in SURFACE_PATTERNS))
+    for name in OUTPUT_NAMES - {"surface"}:  # organlab writes files there, never folders or links
+        p = path / name
+        if p.is_symlink() or p.is_dir():
+            others.append(name)
+    return others
 
 
 def check_output_dir(out):
@@ -186,8 +295,8 @@ def check_output_dir(out):
     out = Path(out).absolute()
     if out.exists() and not out.is_dir():
         raise OrganlabError(f"{out}: --out exists and is not a folder; give a folder path")
-    if out.is_dir() and not _is_output_folder(out):
-        others = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_NAMES)
+    others = _foreign_files(out) if out.is_dir() else []
+    if others:
         raise OrganlabError(
             f"{out}: --out holds files organlab did not write ({', '.join(others[:3])}"
             f"{', ...' if len(others) > 3 else ''}); give an empty or new folder"
@@ -201,6 +310,146 @@ def check_output_dir(out):
     return out
 
 
+_held = {}  # out path -> depth of lock_output_dir in this process
+_held_lock = threading.Lock()
+
+
+def _lock_path(out):
+    return out.parent / f".{out.name}.lock"
+
+
+@contextmanager
+def lock_output_dir(out, *, required=True):
+    """Hold the lock of an output folder while a run writes it; recover what a killed run left.
+
+    The lock is an exclusive ``flock`` on ``.NAME.lock`` beside ``out``: the kernel
+    releases it when the process ends, kill -9 included, so a stale lock file never
+    blocks a later run (which removes it when done).  Re-entrant within a process.
+
+    Parameters
+    ----------
+    out : str or Path
+    required : bool
+        False: when the lock file cannot be created (a read-only parent folder), go on
+        without it (for commands that write only inside ``out``).
+
+    Yields
+    ------
+    list of str
+        What :func:`recover_output_dir` restored or removed (empty when nothing).
+
+    Raises
+    ------
+    OrganlabError
+        Another run holds the lock (its process id named).
+    """
+    import fcntl
+
+    out = Path(out).absolute()
+    with _held_lock:
+        if _held.get(out):
+            _held[out] += 1
+            nested = True
+        else:
+            nested = False
+    if nested:
+        try:
+            yield []
+        finally:
+            with _held_lock:
+                _held[out] -= 1
+        return
+    path = _lock_path(out)
+    for _ in range(10):  # the file may be removed by the run that held it between open and lock
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            if not required:
+                yield []
+                return
+            raise OrganlabError(f"{path}: cannot create the lock of --out ({e.strerror}); choose a writable --out") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            if e.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise
+            try:
+                pid = path.read_text().strip() or "?"
+            except OSError:
+                pid = "?"
+            raise OrganlabError(f"{out}: another organlab run (process {pid}) is writing this --out; wait for it "
+                                "to finish or give another --out") from None
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    else:
+        raise OrganlabError(f"{path}: the lock of --out keeps changing; is another run starting? try again")
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        with _held_lock:
+            _held[out] = 1
+        try:
+            yield recover_output_dir(out)
+        finally:
+            with _held_lock:
+                _held.pop(out, None)
+            try:
+                os.unlink(path)  # before the unlock: a waiting run then finds the file gone and retries
+            except OSError:
+                pass
+    finally:
+        os.close(fd)
+
+
+def recover_output_dir(out):
+    """Restore or remove what an interrupted run left beside ``out``.
+
+    A run killed between moving the previous result aside (``.NAME.old-*``) and moving
+    the new one in leaves no ``out``: the previous result is moved back.  A previous
+    result left aside when ``out`` exists, and half-written temporary folders
+    (``.NAME.tmp-*``, ``.NAME.check-*``), are removed.  Call it holding
+    :func:`lock_output_dir` (it does).
+
+    Returns
+    -------
+    list of str
+        One line per thing restored or removed.
+    """
+    out = Path(out).absolute()
+    parent = out.parent
+    if not parent.is_dir():
+        return []
+    notes = []
+    olds = sorted(parent.glob(f".{_glob_escape(out.name)}.old-*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    olds = [p for p in olds if p.is_dir() and not p.is_symlink()]
+    if olds and not out.exists():
+        os.rename(olds[0], out)
+        notes.append(f"restored the previous result {out} from {olds[0].name} (a run was interrupted while "
+                     "replacing it)")
+        olds = olds[1:]
+    for p in olds:
+        shutil.rmtree(p, ignore_errors=True)
+        notes.append(f"removed {p.name}, a previous result an interrupted run had moved aside")
+    for pattern in (".{}.tmp-*", ".{}.check-*"):
+        for p in sorted(parent.glob(pattern.format(_glob_escape(out.name)))):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+                notes.append(f"removed {p.name}, the unfinished output of an interrupted run")
+    return notes
+
+
+def _glob_escape(name):
+    """``name`` with glob's special characters escaped (``[``, ``*``, ``?``)."""
+    return re.sub(r"([\[\]*?])", r"[\1]", name)
+
+
 @contextmanager
 def atomic_output_dir(out):
     """A temporary folder beside ``out`` that replaces ``out`` when the block completes.
@@ -209,7 +458,9 @@ def atomic_output_dir(out):
     normally, a previous ``out`` is moved aside, the new folder renamed to
     ``out`` and the old one removed: no file of an earlier run is left mixed
     with the new ones.  When the block raises (Ctrl-C included), the
-    temporary folder is removed and ``out`` is untouched.
+    temporary folder is removed and ``out`` is untouched.  The whole block holds
+    :func:`lock_output_dir` (a concurrent run refuses), and a killed earlier run's
+    leftovers are recovered first (:func:`recover_output_dir`).
 
     Parameters
     ----------
@@ -220,27 +471,33 @@ def atomic_output_dir(out):
     ------
     Path
     """
-    out = check_output_dir(out)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
-    try:
-        yield tmp
-        os.chmod(tmp, 0o777 & ~_umask())
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
-            os.rmdir(old)
-            os.rename(out, old)
+    with lock_output_dir(out):
+        out = check_output_dir(out)
+        tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
         try:
-            os.rename(tmp, out)
-        except OSError:
+            yield tmp
+            os.chmod(tmp, 0o777 & ~_umask())
+            old = None
+            if out.exists():
+                old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
+                os.rmdir(old)
+                os.rename(out, old)
+            try:
+                os.rename(tmp, out)
+            except OSError:
+                if old is not None:
+                    os.rename(old, out)  # put the previous result back
+                raise
             if old is not None:
-                os.rename(old, out)  # put the previous result back
+                shutil.rmtree(old, ignore_errors=True)
+        except OSError as e:  # a full disk, a folder made read-only meanwhile: one line, the previous result intact
+            shutil.rmtree(tmp, ignore_errors=True)
+            what = f" ({e.filename})" if e.filename else ""
+            raise OrganlabError(f"{out}: cannot write the outputs: {e.strerror or e}{what}; free some space or choose "
+                                "another --out (a previous result there is left as it was)") from None
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
             raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def _umask():

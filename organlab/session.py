@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .validate import inside, printable, read_json
+from .preflight import image_header_size
 from .camera import Camera, nearest_rotation
 from .errors import SessionError
 
@@ -32,6 +34,12 @@ __all__ = [
 ]
 
 FORMAT = "organlab.session/1"
+
+#: Images above this many pixels are checked at load from their headers only (not decoded twice).
+_DECODE_CHECK_MAX_PX = 50_000_000
+
+#: Largest roi coordinate accepted, mm: an roi of 1e308 mm overflowed the grid's shape.
+ROI_LIMIT_MM = 1e5
 
 
 @dataclass(frozen=True)
@@ -174,6 +182,10 @@ def read_image(path, *, size=None, key="image", grey=False, session=None):
     shown = session.relpath(path) if session is not None else str(path)
     if not path.is_file():
         _fail(where, key, f"image '{shown}' does not exist; check the path (relative to the session folder)")
+    header = image_header_size(path)  # before decoding: a 20000x20000 PNG is 1.2 MB on disk, 1.2 GB decoded
+    if size is not None and header is not None and header != tuple(size):
+        _fail(where, key, f"image '{shown}' is {header[0]}x{header[1]} px but image_size is {size[0]}x{size[1]}; "
+                          "every image of a session must have the same size")
     data = np.fromfile(str(path), dtype=np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
@@ -199,19 +211,24 @@ def _image_at_angle(item, key, where, hint):
     if not isinstance(item, dict) or not isinstance(item.get("image"), str):
         _fail(where, key, "must be {'image': path, 'angle_deg': number, ...}")
     a = item.get("angle_deg")
-    if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a):
-        _fail(where, key + ".angle_deg", f"is missing or not a number; {hint}")
+    if not isinstance(a, (int, float)) or isinstance(a, bool) or not np.isfinite(a) or abs(a) > 1e6:
+        _fail(where, key + ".angle_deg", f"is missing or not a number (degrees, |angle| <= 1e6); {hint}")
     return item["image"], float(a)
 
 
-def _image_list(raw, key, root, where):
+def _image_list(raw, key, root, where, outside=False):
     items = raw
     if not isinstance(items, list) or not all(isinstance(s, str) for s in items):
         _fail(where, key, "must be a list of image paths (strings)")
-    return tuple(root / s for s in items)
+    return tuple(_inside(root, s, f"{key}[{i}]", where, outside) for i, s in enumerate(items))
 
 
-def load_session(path: str | Path, *, check_images: bool = True) -> Session:
+def _inside(root, relative, key, where, outside):
+    """A path a session names, inside the session folder (symlinks followed) unless ``outside``."""
+    return inside(root, relative, key, error=SessionError, where=str(where), allow_outside=outside)
+
+
+def load_session(path: str | Path, *, check_images: bool = True, allow_outside_paths: bool = False) -> Session:
     """Load and validate a session folder.
 
     Parameters
@@ -220,6 +237,9 @@ def load_session(path: str | Path, *, check_images: bool = True) -> Session:
         The session folder (or its ``session.json``).
     check_images : bool
         Also open every image the session names and check its size.
+    allow_outside_paths : bool
+        Accept image paths that lead out of the session folder (absolute, ``..``, a
+        symlink out); refused by default, so that a session reads only its own files.
 
     Returns
     -------
@@ -234,15 +254,15 @@ def load_session(path: str | Path, *, check_images: bool = True) -> Session:
     size = _image_size(raw, sj)
     roi_min, roi_max = _roi(raw, sj)
     pattern = _pattern(raw, sj)
-    intrinsic, turntable, background = _board_and_background_images(raw, root, sj)
+    intrinsic, turntable, background = _board_and_background_images(raw, root, sj, allow_outside_paths)
     camera = _camera(raw, size, sj)
     calibration = _calibration_json(root / "calibration.json")
-    views, notes = _views(raw, root, sj)
+    views, notes = _views(raw, root, sj, allow_outside_paths)
     backdrop = _parse_backdrop(raw.get("backdrop"), sj, background)
     _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration, backdrop)
     session = Session(
         root=root,
-        name=str(raw.get("name", root.name)),
+        name=_name(raw, root, sj),
         image_size=size,
         roi_min=roi_min,
         roi_max=roi_max,
@@ -273,12 +293,7 @@ def _read_session_json(path):
         raise SessionError(f"{root}: session folder does not exist")
     if not sj.is_file():
         raise SessionError(f"{sj}: no session.json in this folder; is it a session folder?")
-    try:
-        raw = json.loads(sj.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise SessionError(f"{sj}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
-    except UnicodeDecodeError:
-        raise SessionError(f"{sj}: not a UTF-8 text file") from None
+    raw = read_json(sj, error=SessionError, fix="fix it (docs/session-format.md)")
     if not isinstance(raw, dict):
         _fail(sj, "(top level)", "must be a JSON object")
     if raw.get("format") != FORMAT:
@@ -288,14 +303,22 @@ def _read_session_json(path):
     return root, sj, raw
 
 
+def _name(raw, root, sj):
+    """The session's name, its control characters escaped (it is printed to terminals)."""
+    name = raw.get("name", root.name)
+    if not isinstance(name, str) or len(name) > 200:
+        _fail(sj, "name", f"must be text of at most 200 characters, got {printable(repr(name)[:40])}")
+    return printable(name)
+
+
 def _image_size(raw, sj):
     size = raw.get("image_size")
     if (
         not isinstance(size, list)
         or len(size) != 2
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
+        or not all(isinstance(s, int) and not isinstance(s, bool) and 0 < s <= 1_000_000 for s in size)
     ):
-        _fail(sj, "image_size", f"must be [width, height] in pixels (positive integers), got {size!r}")
+        _fail(sj, "image_size", f"must be [width, height] in pixels (integers 1-1000000), got {printable(repr(size)[:60])}")
     return tuple(size)
 
 
@@ -305,6 +328,9 @@ def _roi(raw, sj):
         _fail(sj, "roi", "must be {'min': [x, y, z], 'max': [x, y, z]} in mm")
     roi_min = _matrix(roi["min"], (3,), sj, "roi.min")
     roi_max = _matrix(roi["max"], (3,), sj, "roi.max")
+    if np.abs(np.concatenate([roi_min, roi_max])).max() > ROI_LIMIT_MM:
+        _fail(sj, "roi", f"coordinates beyond +-{ROI_LIMIT_MM:g} mm (a {ROI_LIMIT_MM / 1000:g} m turntable); give the "
+                         f"box around the specimen in mm, got {roi_min.tolist()} to {roi_max.tolist()}")
     bad = [("xyz"[i]) for i in range(3) if roi_min[i] >= roi_max[i]]
     if bad:
         _fail(sj, "roi", f"min must be < max on every axis; not on {', '.join(bad)} ({roi_min.tolist()} vs {roi_max.tolist()})")
@@ -320,27 +346,29 @@ def _pattern(raw, sj):
     if p.get("type", "checkerboard") != "checkerboard":
         _fail(sj, "pattern.type", f"only 'checkerboard' is supported, got {p.get('type')!r}")
     ic = p.get("inner_corners")
-    if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) and v >= 2 for v in ic)):
+    if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and 2 <= v <= 1000
+                                                          for v in ic)):
         _fail(sj, "pattern.inner_corners", f"must be [columns, rows] of inner corners (integers >= 2), got {ic!r}")
     sq = p.get("square_size")
-    if not (isinstance(sq, (int, float)) and not isinstance(sq, bool) and sq > 0):
+    if not (isinstance(sq, (int, float)) and not isinstance(sq, bool) and np.isfinite(sq) and 0 < sq < 1e6):
         _fail(sj, "pattern.square_size", f"must be a positive number of mm, got {sq!r}")
     return Pattern(tuple(ic), float(sq))
 
 
-def _board_and_background_images(raw, root, sj):
+def _board_and_background_images(raw, root, sj, outside=False):
     cal = raw.get("calibration") or {}
     if not isinstance(cal, dict):
         _fail(sj, "calibration", "must be an object")
-    intrinsic = _image_list(cal.get("intrinsic_images", []), "calibration.intrinsic_images", root, sj)
+    intrinsic = _image_list(cal.get("intrinsic_images", []), "calibration.intrinsic_images", root, sj, outside)
     tt_raw = cal.get("turntable_images", [])
     if not isinstance(tt_raw, list):
         _fail(sj, "calibration.turntable_images", "must be a list of {'image': ..., 'angle_deg': ...}")
     turntable = []
     for i, item in enumerate(tt_raw):
-        image, a = _image_at_angle(item, f"calibration.turntable_images[{i}]", sj, "give the table angle of every turntable image")
-        turntable.append((root / image, a))
-    background = _image_list(raw.get("background_images", []), "background_images", root, sj)
+        key = f"calibration.turntable_images[{i}]"
+        image, a = _image_at_angle(item, key, sj, "give the table angle of every turntable image")
+        turntable.append((_inside(root, image, key + ".image", sj, outside), a))
+    background = _image_list(raw.get("background_images", []), "background_images", root, sj, outside)
     return intrinsic, turntable, background
 
 
@@ -363,10 +391,7 @@ def _calibration_json(cj):
     """The content of the session's calibration.json (checked in full where it is used), or None."""
     if not cj.is_file():
         return None
-    try:
-        calibration = json.loads(cj.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SessionError(f"{cj}: invalid JSON ({e}); delete it and run 'organlab calibrate' again") from None
+    calibration = read_json(cj, error=SessionError, fix="delete it and run 'organlab calibrate' again")
     if not isinstance(calibration, dict) or "camera" not in calibration:
         raise SessionError(f"{cj}: has no 'camera'; delete it and run 'organlab calibrate' again")
     if not isinstance(calibration["camera"], dict):
@@ -377,7 +402,7 @@ def _calibration_json(cj):
     return calibration
 
 
-def _views(raw, root, sj):
+def _views(raw, root, sj, outside=False):
     views_raw = raw.get("views")
     if not isinstance(views_raw, list):
         _fail(sj, "views", "is required: a list of {'image': path, 'angle_deg': number} (may be empty)")
@@ -405,8 +430,8 @@ def _views(raw, root, sj):
         if v.get("mask") is not None:
             if not isinstance(v["mask"], str):
                 _fail(sj, key + ".mask", "must be an image path")
-            mask = root / v["mask"]
-        views.append(View(root / image, a, pose, mask))
+            mask = _inside(root, v["mask"], key + ".mask", sj, outside)
+        views.append(View(_inside(root, image, key + ".image", sj, outside), a, pose, mask))
     return views, notes
 
 
@@ -435,8 +460,9 @@ def _reference(raw, sj):
     reference = raw.get("reference") or {}
     if not isinstance(reference, dict):
         _fail(sj, "reference", "must be an object, e.g. {'volume_mm3': 180000}")
-    if "volume_mm3" in reference and not (isinstance(reference["volume_mm3"], (int, float)) and reference["volume_mm3"] > 0):
-        _fail(sj, "reference.volume_mm3", "must be a positive number")
+    v = reference.get("volume_mm3")
+    if "volume_mm3" in reference and not (isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0):
+        _fail(sj, "reference.volume_mm3", f"must be a finite positive number of mm3, got {printable(repr(v)[:40])}")
     return dict(reference)
 
 
@@ -474,13 +500,20 @@ def _check_images(s):
         items.append((v.image, f"views[{i}].image"))
         if v.mask is not None:
             items.append((v.mask, f"views[{i}].mask"))
+    big = s.image_size[0] * s.image_size[1] > _DECODE_CHECK_MAX_PX
     for p, key in items:
+        if big and image_header_size(p) == tuple(s.image_size):
+            continue  # its header is checked; decoding is left to the run (after its memory pre-flight)
         s.read(p, key=key)
 
 
 def write_json(path, obj):
-    """Write ``obj`` as indented JSON (numpy arrays and scalars converted)."""
-    Path(path).write_text(json.dumps(obj, indent=2, default=_json_default) + "\n", encoding="utf-8")
+    """Write ``obj`` as indented JSON (numpy arrays and scalars converted; strict JSON: non-finite numbers as null)."""
+    try:
+        text = json.dumps(obj, indent=2, default=_json_default, allow_nan=False)
+    except ValueError:  # strict JSON always: a non-finite number (NaN, inf) is written as null
+        text = json.dumps(_finite_or_null(obj, _json_default), indent=2, default=_json_default, allow_nan=False)
+    Path(path).write_text(text + "\n", encoding="utf-8")
 
 
 def save_session(folder: str | Path, doc: dict) -> Path:
@@ -529,3 +562,15 @@ def _json_default(o):
     if isinstance(o, Path):
         return o.as_posix()
     raise TypeError(f"cannot serialise {type(o).__name__}")
+
+
+def _finite_or_null(o, default):
+    if isinstance(o, dict):
+        return {k: _finite_or_null(v, default) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite_or_null(v, default) for v in o]
+    if isinstance(o, (np.ndarray, np.generic)):
+        return _finite_or_null(default(o), default)
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    return o

@@ -182,7 +182,7 @@ def test_calibrate_cli_writes_to_out_or_in_place(sample, tmp_path):
     assert main(["calibrate", str(copy), "--in-place", "--quiet"]) == 0
     assert (copy / "calibration.json").is_file() and (copy / "calibration_check").is_dir()
     rec = ol.reconstruct(copy, voxel_size=4.0)
-    assert rec.report["calibration"]["source"] == "reused"
+    assert rec.report["calibration"]["source"] == "reused, verified"
 
 
 def test_import_organlab_stays_light():

@@ -19,10 +19,11 @@ PKG = ROOT / "organlab"
 
 #: Floors, bottom first.  Keep docs/architecture.md's table equal to this (tested).
 FLOORS = {
-    "ground": {"errors", "camera", "grid", "mesh", "bandfield", "masks", "raster", "nbcam", "session", "progress",
-               "cliparser"},
-    "stages": {"calibration", "capture", "silhouette", "carving", "coloring", "surface", "agreement", "scaffold"},
-    "engine": {"engine", "pipeline", "preflight"},
+    "ground": {"errors", "validate", "camera", "grid", "mesh", "bandfield", "masks", "raster", "nbcam", "session",
+               "progress", "cliparser", "preflight"},
+    "stages": {"calibration", "capture", "silhouette", "carving", "coloring", "surface", "agreement", "checks",
+               "scaffold"},
+    "engine": {"engine", "pipeline"},
     "faces": {"cli", "__main__", "viewer", "widgets", "figures"},
 }
 ORDER = list(FLOORS)

@@ -114,7 +114,7 @@ def test_calibrates_when_no_camera_is_given(tmp_path):
     # saved into the session (as `organlab calibrate --in-place` does), a second run reuses it
     rec.calibration.save(root / "calibration.json")
     again = reconstruct(root, voxel_size=4.0)
-    assert "calibration" not in again.report["timings_s"] and again.report["calibration"]["source"] == "reused"
+    assert "calibration" not in again.report["timings_s"] and again.report["calibration"]["source"] == "reused, verified"
     np.testing.assert_allclose(again.cameras[0].K, rec.cameras[0].K)
 
 

@@ -56,7 +56,7 @@ def test_volume_within_half_a_percent_at_1mm(demo, sessions):
 
 def test_volume_within_one_percent_at_2mm(demo, sessions):
     rec = reconstruct(load_session(sessions[0]), voxel_size=2.0, calibration=demo.calibration)
-    assert "calibration" not in rec.report["timings_s"] and rec.report["calibration"]["source"] == "given"
+    assert "calibration" not in rec.report["timings_s"] and rec.report["calibration"]["source"] == "given, verified"
     assert abs(rec.mesh.volume / sessions[2]["volume_mm3"] - 1) < 0.01
 
 

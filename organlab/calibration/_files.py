@@ -17,12 +17,12 @@ the same camera model as organlab (:class:`~organlab.camera.Camera`):
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
 import numpy as np
 
+from ..validate import read_json
 from ..camera import Camera
 from ..errors import CalibrationError
 
@@ -100,16 +100,21 @@ def read_bouguet(path: str | Path, *, image_size: tuple[int, int] | None = None)
     for key in ("fc", "cc"):
         if key not in v or np.size(v[key]) != 2:
             raise CalibrationError(f"{path}: {key} is missing or not a 2-vector; is it a Calib_Results.m file?")
-    fc, cc = np.asarray(v["fc"], float), np.asarray(v["cc"], float)
-    alpha = float(v.get("alpha_c", 0.0))
-    kc = np.zeros(5)
-    if "kc" in v:
-        k = np.atleast_1d(v["kc"]).astype(float)
-        if k.size > 5:
-            raise CalibrationError(f"{path}: kc has {k.size} coefficients; at most 5 [k1, k2, p1, p2, k3] are supported")
-        kc[: k.size] = k
-    if "nx" in v and "ny" in v:
-        size = (int(v["nx"]), int(v["ny"]))
+    try:
+        fc, cc = np.asarray(v["fc"], float).ravel(), np.asarray(v["cc"], float).ravel()
+        alpha = float(np.asarray(v.get("alpha_c", 0.0), float).ravel()[0])
+        kc = np.zeros(5)
+        k = np.atleast_1d(np.asarray(v.get("kc", []), float)).ravel()
+        size = (int(np.asarray(v["nx"]).ravel()[0]), int(np.asarray(v["ny"]).ravel()[0])) if "nx" in v and "ny" in v else None
+    except (TypeError, ValueError, IndexError, OverflowError) as e:
+        raise CalibrationError(f"{path}: fc, cc, alpha_c, kc, nx, ny must be numbers ({e}); is it a Calib_Results.m file?") from None
+    if not (np.all(np.isfinite(fc)) and np.all(np.isfinite(cc)) and np.isfinite(alpha) and np.all(np.isfinite(k))):
+        raise CalibrationError(f"{path}: fc, cc, alpha_c and kc must be finite numbers; is it a Calib_Results.m file?")
+    if k.size > 5:
+        raise CalibrationError(f"{path}: kc has {k.size} coefficients; at most 5 [k1, k2, p1, p2, k3] are supported")
+    kc[: k.size] = k
+    if size is not None:
+        pass
     elif image_size is not None:
         size = tuple(int(s) for s in image_size)
     else:
@@ -122,7 +127,12 @@ def read_bouguet(path: str | Path, *, image_size: tuple[int, int] | None = None)
     errors = {}
     for key, n in (("fc_error", 2), ("cc_error", 2), ("alpha_c_error", 1), ("kc_error", 5)):
         if key in v:
-            e = np.atleast_1d(np.asarray(v[key], float))
+            try:
+                e = np.atleast_1d(np.asarray(v[key], float)).ravel()
+            except (TypeError, ValueError):
+                continue  # an uncertainty that is not numbers: left out
+            if e.size == 0 or not np.all(np.isfinite(e)):
+                continue
             if key == "alpha_c_error":
                 errors[key] = float(e[0])
             else:
@@ -218,6 +228,14 @@ def read_opencv(path: str | Path) -> tuple[Camera, dict]:
     if not path.is_file():
         raise CalibrationError(f"{path}: no such file; give an OpenCV calibration YAML/XML file")
     try:
+        return _read_opencv(path, cv2)
+    except (cv2.error, SystemError, TypeError, ValueError, OverflowError) as e:  # OpenCV's parser on a damaged file
+        raise CalibrationError(f"{path}: cannot be parsed as an OpenCV calibration file "
+                               f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+
+
+def _read_opencv(path, cv2):
+    try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except cv2.error:
         raise CalibrationError(f"{path}: cannot be parsed as OpenCV YAML/XML") from None
@@ -239,6 +257,8 @@ def read_opencv(path: str | Path) -> tuple[Camera, dict]:
         w, h = fs.getNode("image_width"), fs.getNode("image_height")
         if w.empty() or h.empty():
             raise CalibrationError(f"{path}: image_width / image_height are missing")
+        if not (np.isfinite(w.real()) and np.isfinite(h.real())):
+            raise CalibrationError(f"{path}: image_width / image_height must be finite numbers")
         size = (int(w.real()), int(h.real()))
         extra = {}
         node = fs.getNode("avg_reprojection_error")
@@ -311,13 +331,10 @@ def read_camera(path: str | Path, *, image_size: tuple[int, int] | None = None) 
     if suffix in (".yml", ".yaml", ".xml"):
         return read_opencv(path)[0]
     if suffix == ".json":
-        try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as e:
-            raise CalibrationError(f"{path}: cannot be read as JSON ({e})") from None
+        d = read_json(path, error=CalibrationError, fix="give a calibration.json or a JSON file with 'camera'")
         d = d.get("camera", d) if isinstance(d, dict) else d
         try:
             return Camera.from_dict(d, image_size=image_size)
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
             raise CalibrationError(f"{path}: not a camera ({e}); it needs K, dist and image_size") from None
     raise CalibrationError(f"{path}: unknown calibration format; use Calib_Results.m, .yml/.yaml/.xml or .json")

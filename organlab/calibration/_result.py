@@ -19,10 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera, nearest_rotation
+from ..camera import Camera, nearest_rotation, rot_z
+from ..validate import array as _array
+from ..validate import number as _number
+from ..validate import read_json
 from ..errors import CalibrationError
 from ..session import Pattern, Session, load_session, write_json
-from ._common import _stored_corners
+from ._board import board_points
+from ._common import _project, _rms, _rodrigues
 from ._intrinsics import IntrinsicCalibration, calibrate_intrinsics
 from ._turntable import TurntableCalibration, calibrate_turntable
 
@@ -32,6 +36,18 @@ FORMAT = "organlab.calibration/1"
 #: sample session: 0.039 / 0.022 px = 1.8x; with 3 of its 10 turntable boards moved by (6, 3) px
 #: and kept in the fit, 1.79 / 0.022 px = 80x; with them set aside, 1.8x again.
 TURNTABLE_RMS_FACTOR = 5.0
+
+#: A stored RMS is reproduced when the RMS recomputed from the stored corners, camera and poses is
+#: within this many px of it, plus :data:`VERIFY_REL` of it.  Measured on a synthetic small session
+#: (organlab synth --small): the corners are stored to 4 decimals, and the recomputed RMS equals the
+#: stored one to < 1e-4 px (intrinsic 0.0342 px, turntable 0.0549 px); fx and fy changed by +1 %
+#: give 0.80 px and 0.62 px, by +8 % 6.39 px and 4.95 px.
+VERIFY_ABS_PX = 0.01
+VERIFY_REL = 0.05
+#: Plausible intrinsics: focal lengths within this factor of the image's larger side (either way),
+#: an aspect fx/fy within [1/2, 2], the principal point inside the image, |k_i| below 100,
+#: an RMS below 50 px.
+PLAUSIBLE_FOCAL_FACTOR = 100.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +148,45 @@ class Calibration:
             why.append("the intrinsics given in session.json changed")
         return why
 
+    def verify(self, session: Session | None = None) -> list[str]:
+        """Why the numbers of this calibration cannot be trusted (empty when they can).
+
+        The fingerprint covers what a calibration was computed *from*; this checks what
+        it *says*.  The stored corners of every board image are reprojected with the
+        stored camera and the stored poses (each intrinsic image's ``rvec``/``tvec``;
+        the turntable's ``R_cam``, ``t_cam``, board offset and table angles) and the RMS
+        found must reproduce the stored ones (:data:`VERIFY_ABS_PX`, :data:`VERIFY_REL`);
+        the intrinsics must be plausible (:data:`PLAUSIBLE_FOCAL_FACTOR`); intrinsics
+        marked as given in ``session.json`` must equal the session's.
+
+        A file whose corners, camera and poses were all changed together so that they
+        agree cannot be told from a real calibration (docs/trust.md).
+
+        Parameters
+        ----------
+        session : Session, optional
+            For the intrinsics it gives.
+
+        Returns
+        -------
+        list of str
+        """
+        why = _implausible(self.camera)
+        if why:
+            return why
+        if session is not None and self.intrinsics is None and session.camera is not None:
+            if not (np.allclose(self.camera.K, session.camera["K"], rtol=1e-9, atol=1e-9)
+                    and np.allclose(self.camera.dist, session.camera["dist"], rtol=1e-9, atol=1e-12)):
+                why.append("its intrinsics are marked as given in session.json but differ from the session's camera")
+        pattern = self.pattern if self.pattern is not None else getattr(session, "pattern", None)
+        if (self.intrinsics is not None or self.turntable is not None) and pattern is None:
+            return why + [f"it has no pattern, so its numbers {_CANNOT}"]
+        if self.intrinsics is not None:
+            why += _verify_intrinsics(self.intrinsics, self.camera, pattern)
+        if self.turntable is not None:
+            why += _verify_turntable(self.turntable, pattern)
+        return why
+
     # ------------------------------------------------------------ file form
     def to_dict(self) -> dict:
         """JSON-ready: the content of ``calibration.json`` (``docs/session-format.md``)."""
@@ -177,6 +232,7 @@ class Calibration:
         """
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+        _remove_stale_temporaries(path)
         try:
             write_json(tmp, self.to_dict())
             os.replace(tmp, path)
@@ -197,12 +253,9 @@ class Calibration:
         path = Path(path)
         if path.is_dir():
             path = path / "calibration.json"
-        try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise CalibrationError(f"{path}: no such calibration file") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise CalibrationError(f"{path}: invalid JSON ({e}); recalibrate (organlab calibrate)") from None
+        if not path.is_file():
+            raise CalibrationError(f"{path}: no such calibration file")
+        d = read_json(path, error=CalibrationError, fix="recalibrate (organlab calibrate)")
         return cls.from_dict(d, image_size=image_size, where=path)
 
     def warnings(self) -> list[str]:
@@ -242,6 +295,20 @@ class Calibration:
             lines.append(f"turntable RMS {t.rms_px:.3f} px over {len(t.per_image_rms) - len(t.flagged)} images"
                          + (f" (flagged: {', '.join(t.flagged)})" if t.flagged else ""))
         return lines
+
+
+def _remove_stale_temporaries(path):
+    """Remove ``.NAME.tmpPID`` files beside ``path`` left by a process that no longer runs (a kill -9)."""
+    for p in path.parent.glob(f".{path.name}.tmp*"):
+        pid = p.name[len(path.name) + 4:]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            p.unlink(missing_ok=True)
+        except OSError:  # alive, someone else's
+            pass
 
 
 # ================================================================= session glue
@@ -373,7 +440,7 @@ def calibration_for(session: Session | str | Path, *, calibration: Calibration |
     -------
     calibration : Calibration
     how : str
-        ``'computed'``, ``'given'``, ``'session.json'``, ``'reused'`` or
+        ``'computed'``, ``'given'``, ``'session.json'``, ``'reused, verified'`` or
         ``'recomputed: <why the saved one was not used>'``.
 
     Examples
@@ -395,7 +462,13 @@ def calibration_for(session: Session | str | Path, *, calibration: Calibration |
             raise CalibrationError(
                 f"{session.json_path}: the given calibration does not belong to this session: {'; '.join(why)}; "
                 "recalibrate (organlab reconstruct --recalibrate) or give the right calibration.json")
-        return calibration, "given"
+        why = calibration.verify(session)
+        wrong = [w for w in why if _CANNOT not in w]
+        if wrong:
+            raise CalibrationError(
+                f"{session.json_path}: the given calibration cannot be trusted: {'; '.join(wrong)}; "
+                "recalibrate (organlab reconstruct --recalibrate) or give the right calibration.json")
+        return calibration, ("given, not verified: " + "; ".join(why)) if why else "given, verified"
     if not needs_calibration(session):
         return Calibration(session.given_camera(), fingerprint=session_fingerprint(session)), "session.json"
     if session.calibration is not None and not recalibrate:
@@ -403,13 +476,94 @@ def calibration_for(session: Session | str | Path, *, calibration: Calibration |
         why = saved.mismatch(session)
         if saved.turntable is None and any(v.pose is None for v in session.views):
             why.append("it has no turntable fit and some views have no pose")
-        if not why:
-            return saved, "reused"
-        if not (session.intrinsic_images or session.turntable_images):
+        checked = saved.verify(session)
+        boards = bool(session.intrinsic_images or session.turntable_images)
+        if not why and not checked:
+            return saved, "reused, verified"
+        if not why and not boards and all(_CANNOT in w for w in checked):
+            return saved, f"reused, NOT verified: {'; '.join(checked)}"
+        why += checked
+        if not boards:
             raise CalibrationError(f"{session.calibration_path}: does not match the session ({'; '.join(why)}) "
                                    "and the session has no board images to recalibrate from")
         return calibrate(session, progress=progress), f"recomputed: {session.calibration_path.name} not used: {'; '.join(why)}"
     return calibrate(session, progress=progress), "computed"
+
+
+# ================================================================= verification
+_CANNOT = "cannot be checked"
+
+
+def _implausible(camera):
+    K, (w, h) = camera.K, camera.image_size
+    side = max(w, h)
+    fx, fy = K[0, 0], K[1, 1]
+    why = []
+    if not (side / PLAUSIBLE_FOCAL_FACTOR <= min(fx, fy) and max(fx, fy) <= side * PLAUSIBLE_FOCAL_FACTOR):
+        why.append(f"its focal lengths fx {fx:g}, fy {fy:g} px are implausible for {w}x{h} images")
+    elif not 0.5 <= fx / fy <= 2.0:
+        why.append(f"its aspect fx/fy = {fx / fy:.3g} is implausible (a pixel 2x wider than tall)")
+    if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+        why.append(f"its principal point ({K[0, 2]:g}, {K[1, 2]:g}) px is outside the {w}x{h} image")
+    if np.abs(camera.dist).max() > 100:
+        why.append(f"its distortion {np.round(camera.dist, 3).tolist()} is implausible")
+    return why
+
+
+def _reproduces(found, stored):
+    return abs(found - stored) <= VERIFY_ABS_PX + VERIFY_REL * stored
+
+
+def _verify_intrinsics(intr, camera, pattern):
+    obj = board_points(pattern)
+    used = [n for n in intr.per_image_rms if n in intr.corners and n in intr.extrinsics]
+    if not used or len(used) < len(intr.per_image_rms):
+        return ["its intrinsic images have no stored corners or poses (written by an older organlab), so its numbers "
+                "cannot be checked"]
+    res = []
+    for n in used:
+        c = intr.corners[n]
+        if c.shape != (obj.shape[0], 2):
+            return [f"camera.images.{n}: {c.shape[0]} corners but the pattern has {obj.shape[0]}"]
+        rv, tv = intr.extrinsics[n]
+        if rv.shape != (3,) or tv.shape != (3,):
+            return [f"camera.images.{n}: rvec and tvec must be 3 numbers each"]
+        pc = obj @ _rodrigues(rv)[0].T + tv
+        if np.any(pc[:, 2] <= 0):
+            return [f"camera.images.{n}: its board is behind the camera"]
+        res.append(_project(camera.K, camera.dist, pc) - c)
+    found = _rms(np.stack(res))
+    if intr.rms_px is None or not _reproduces(found, intr.rms_px):
+        return [f"its stored corners reprojected with its camera and poses give an RMS of {found:.3g} px, "
+                f"not the {_g(intr.rms_px)} px it states (its numbers were changed)"]
+    return []
+
+
+def _verify_turntable(tt, pattern):
+    obj = board_points(pattern)
+    names = [n for n in tt.per_image_rms if n not in tt.flagged]
+    if not names or any(n not in tt.corners or n not in tt.angles_deg for n in names):
+        return ["its turntable images have no stored corners or angles (written by an older organlab), so its "
+                f"numbers {_CANNOT}"]
+    off = np.asarray(tt.board_offset_mm, dtype=np.float64).ravel()
+    if off.shape != (2,) or not np.all(np.isfinite(off)):
+        return ["turntable.axis.board_offset_mm must be 2 finite numbers"]
+    cam = tt.camera
+    res = []
+    for n in names:
+        c = tt.corners[n]
+        if c.shape != (obj.shape[0], 2):
+            return [f"turntable.images.{n}: {c.shape[0]} corners but the pattern has {obj.shape[0]}"]
+        Xw = (obj + [off[0], off[1], 0.0]) @ rot_z(tt.angles_deg[n]).T
+        pc = Xw @ cam.R.T + cam.t
+        if np.any(pc[:, 2] <= 0):
+            return [f"turntable.images.{n}: its board is behind the camera"]
+        res.append(_project(cam.K, cam.dist, pc) - c)
+    found = _rms(np.stack(res))
+    if tt.rms_px is None or not _reproduces(found, tt.rms_px):
+        return [f"its stored turntable corners reprojected with its camera, axis and angles give an RMS of "
+                f"{found:.3g} px, not the {_g(tt.rms_px)} px it states (its numbers were changed)"]
+    return []
 
 
 # ================================================================= file form, read
@@ -441,7 +595,7 @@ class _Problems:
             return None
         try:
             a = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             self.add(key, f"must be {_shape_text(shape)} numbers, got {_short(value)}")
             return None
         if a.shape != shape:
@@ -463,9 +617,10 @@ class _Problems:
         return float(value)
 
     def raise_if_any(self):
-        if self.lines:
+        if self.lines:  # one line: the first problem, and how many more
             hint = "; fix it or recalibrate (organlab calibrate, or reconstruct --recalibrate)"
-            raise CalibrationError("\n".join(self.lines) + hint)
+            more = f" (and {len(self.lines) - 1} more)" if len(self.lines) > 1 else ""
+            raise CalibrationError(self.lines[0] + more + hint)
 
 
 def _shape_text(shape):
@@ -488,7 +643,8 @@ def _from_dict(cls, d, image_size, where):
     K = pr.array(cam_d.get("K"), (3, 3), "camera.K")
     dist = pr.array(cam_d.get("dist", [0, 0, 0, 0, 0]), (5,), "camera.dist")
     size = cam_d.get("image_size", image_size)
-    if size is None or not (len(size) == 2 and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+    if not (isinstance(size, (list, tuple)) and len(size) == 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and 0 < s <= 1_000_000 for s in size)):
         pr.add("camera.image_size", f"must be [width, height] in px, got {_short(size)}")
     tt_d = d.get("turntable")
     if tt_d is not None and not isinstance(tt_d, dict):
@@ -503,6 +659,9 @@ def _from_dict(cls, d, image_size, where):
     if fp is not None and not isinstance(fp, dict):
         pr.add("fingerprint", "must be an object")
         fp = None
+    if fp is not None and fp.get("pattern") is not None and _pattern(fp["pattern"], _Problems(where)) is None:
+        pr.add("fingerprint.pattern", f"must be {{'inner_corners': [cols, rows], 'square_size': mm}}, got {_short(fp['pattern'])}")
+        fp = None
     pr.raise_if_any()
     try:
         camera = Camera(K, dist, image_size=tuple(size))
@@ -516,6 +675,8 @@ def _from_dict(cls, d, image_size, where):
         except ValueError as e:
             pr.add("turntable.R_cam", str(e))
     pr.raise_if_any()
+    if cam_d.get("source") not in (None, "session.json", "calibrated"):
+        pr.add("camera.source", f"must be 'calibrated' or 'session.json', got {_short(cam_d.get('source'))}")
     intr = None if cam_d.get("source") == "session.json" else _intrinsics_from(cam_d, camera, pr)
     tt = None if tt_d is None else _turntable_from(tt_d, tt_cam, pr)
     pr.raise_if_any()
@@ -527,8 +688,11 @@ def _pattern(p, pr):
         return None
     ic = p.get("inner_corners") if isinstance(p, dict) else None
     sq = p.get("square_size") if isinstance(p, dict) else None
-    if not (isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) for v in ic)) or pr.number(sq, "pattern.square_size") is None:
-        pr.add("pattern", f"must be {{'inner_corners': [cols, rows], 'square_size': mm}}, got {_short(p)}")
+    ok_ic = isinstance(ic, list) and len(ic) == 2 and all(isinstance(v, int) and not isinstance(v, bool) and 2 <= v <= 1000
+                                                          for v in ic)
+    ok_sq = isinstance(sq, (int, float)) and not isinstance(sq, bool) and math.isfinite(sq) and 0 < sq < 1e6
+    if not (ok_ic and ok_sq):
+        pr.add("pattern", f"must be {{'inner_corners': [cols, rows] (2-1000), 'square_size': mm > 0}}, got {_short(p)}")
         return None
     return Pattern(tuple(ic), float(sq))
 
@@ -539,43 +703,124 @@ def _per_image(images, pr, key):
     if not isinstance(images, dict):
         pr.add(key, "must be an object keyed by image name")
         return {}
+    bad = [n for n, e in images.items() if not isinstance(e, dict)]
+    if bad:
+        pr.add(f"{key}.{_short(bad[0])}", "must be an object")
     return {n: e for n, e in images.items() if isinstance(e, dict)}
+
+
+def _checked(pr, fn, *args, **kw):
+    """``fn(*args, **kw)`` of organlab.validate, its error collected as one problem (None then)."""
+    try:
+        return fn(*args, error=CalibrationError, **kw)
+    except CalibrationError as e:
+        pr.lines.append(f"{pr.where}: {e}")
+        return None
+
+
+def _entries(images, pr, key, *, angle=False):
+    """Per-image rms, poses, corners (and angles) of the stored images, each checked."""
+    rms, ext, corners, angles = {}, {}, {}, {}
+    for n, e in images.items():
+        k = f"{key}.{n}"
+        if "rms_px" in e:
+            v = _checked(pr, _number, e["rms_px"], f"{k}.rms_px", lo=0)
+            if v is not None:
+                rms[n] = v
+        if "rvec" in e or "tvec" in e:
+            rv = _checked(pr, _array, e.get("rvec"), (3,), f"{k}.rvec")
+            tv = _checked(pr, _array, e.get("tvec"), (3,), f"{k}.tvec")
+            if rv is not None and tv is not None:
+                ext[n] = (rv, tv)
+        if "corners_px" in e:
+            c = _checked(pr, _array, e["corners_px"], (-1, 2), f"{k}.corners_px")
+            if c is not None:
+                corners[n] = c
+        if angle and "angle_deg" in e:
+            a = _checked(pr, _number, e["angle_deg"], f"{k}.angle_deg", lo=-1e6, hi=1e6)
+            if a is not None:
+                angles[n] = a
+    return rms, ext, corners, angles
+
+
+def _std(value, pr, key, shapes):
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        pr.add(key, f"must be an object, got {_short(value)}")
+        return {}
+    out = {}
+    for k, shape in shapes.items():
+        if k in value:
+            a = _checked(pr, _array, value[k], shape, f"{key}.{k}", lo=0)
+            if a is not None:
+                out[k] = a
+    return out
+
+
+def _reasons(value, pr, key):
+    """``rejected``: an object of image name to reason (text)."""
+    if value is None:
+        return {}
+    if isinstance(value, list) and not value:
+        return {}
+    if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+        pr.add(key, f"must be an object of image name to reason, got {_short(value)}")
+        return {}
+    return dict(value)
+
+
+def _names_list(value, pr, key, allowed=None):
+    if value is None:
+        return []
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value) or (
+            allowed is not None and not set(value) <= set(allowed)):
+        pr.add(key, f"must be a list of {'image names' if allowed is None else 'names among ' + str(sorted(allowed))}, "
+                    f"got {_short(value)}")
+        return []
+    return list(value)
 
 
 def _intrinsics_from(cam_d, camera, pr):
     images = _per_image(cam_d.get("images"), pr, "camera.images")
     rms = pr.number(cam_d.get("rms_px"), "camera.rms_px")
-    std = {k: np.asarray(v, dtype=np.float64) for k, v in (cam_d.get("std") or {}).items()}
+    std = _std(cam_d.get("std"), pr, "camera.std", {"fc": (2,), "cc": (2,), "alpha_c": (), "kc": (5,)})
     if "alpha_c" in std:
         std["alpha_c"] = float(std["alpha_c"])
-    ext = {}
-    for n, e in images.items():
-        if "rvec" in e and "tvec" in e:
-            ext[n] = (np.asarray(e["rvec"], dtype=np.float64), np.asarray(e["tvec"], dtype=np.float64))
-    corners = {n: c for n, c in ((n, _stored_corners(e)) for n, e in images.items()) if c is not None}
+    per, ext, corners, _ = _entries(images, pr, "camera.images")
     return IntrinsicCalibration(
         camera=camera,
         rms_px=rms,
-        per_image_rms={n: float(e["rms_px"]) for n, e in images.items() if "rms_px" in e},
+        per_image_rms=per,
         std=std,
-        rejected=dict(cam_d.get("rejected") or {}),
+        rejected=_reasons(cam_d.get("rejected"), pr, "camera.rejected"),
         extrinsics=ext,
         corners=corners,
-        fixed=tuple(cam_d.get("fixed") or ()),
+        fixed=tuple(_names_list(cam_d.get("fixed"), pr, "camera.fixed", allowed=("alpha_c", "k3", "k2", "p1", "p2", "k1"))),
     )
 
 
 def _turntable_from(tt_d, camera, pr):
     images = _per_image(tt_d.get("images"), pr, "turntable.images")
-    off = (tt_d.get("axis") or {}).get("board_offset_mm", [0.0, 0.0])
+    axis = tt_d.get("axis") or {}
+    if not isinstance(axis, dict):
+        pr.add("turntable.axis", f"must be an object, got {_short(axis)}")
+        axis = {}
+    off = _checked(pr, _array, axis.get("board_offset_mm", [0.0, 0.0]), (2,), "turntable.axis.board_offset_mm")
+    per, _, corners, angles = _entries(images, pr, "turntable.images", angle=True)
     return TurntableCalibration(
         camera=camera,
         rms_px=pr.number(tt_d.get("rms_px"), "turntable.rms_px"),
-        per_image_rms={n: float(e["rms_px"]) for n, e in images.items() if "rms_px" in e},
-        flagged=list(tt_d.get("flagged") or []),
-        rejected=dict(tt_d.get("rejected") or {}),
-        angles_deg={n: float(e["angle_deg"]) for n, e in images.items() if "angle_deg" in e},
-        board_offset_mm=np.asarray(off, dtype=np.float64),
-        std={k: np.asarray(v, dtype=np.float64) for k, v in (tt_d.get("std") or {}).items()},
-        corners={n: c for n, c in ((n, _stored_corners(e)) for n, e in images.items()) if c is not None},
+        per_image_rms=per,
+        flagged=_names_list(tt_d.get("flagged"), pr, "turntable.flagged"),
+        rejected=_reasons(tt_d.get("rejected"), pr, "turntable.rejected"),
+        angles_deg=angles,
+        board_offset_mm=np.zeros(2) if off is None else off,
+        std=_std(tt_d.get("std"), pr, "turntable.std",
+                 {"rvec_cam": (3,), "t_cam": (3,), "board_offset_mm": (2,), "camera_center_mm": (3,)}),
+        corners=corners,
     )
+
+
+def _g(v):
+    return "no" if v is None else f"{v:.3g}"

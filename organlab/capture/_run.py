@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..validate import read_json
 from ..camera import Camera
 from ._audit import AUDIT_LIMIT_DEG
 from ._cameras import FolderCamera, OpenCVCamera
@@ -27,8 +27,8 @@ def read_intrinsics(path: str | Path, image_size: tuple[int, int] | None = None)
     organlab.camera.Camera
     """
     p = Path(path)
+    doc = read_json(p, error=CaptureError, fix="give a calibration.json or session.json with 'camera'")
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
         cam = doc["camera"]
         return Camera(cam["K"], cam["dist"], image_size=image_size or cam.get("image_size") or doc.get("image_size"))
     except (OSError, ValueError, KeyError, TypeError) as e:

@@ -135,6 +135,34 @@ def _load_doc(root, settings):
     return doc
 
 
+def _check_same_rig(sj, doc, settings, intrinsics):
+    """A capture continues only with the drive and camera it began with (one line naming both)."""
+    cap = doc["capture"]
+    again = "run with the session's settings to continue, or capture into a new folder"
+    was, now = cap.get("steps_per_deg"), settings.get("steps_per_deg")
+    if was is not None and now is not None and not np.isclose(float(was), now, rtol=1e-9, atol=0):
+        raise CaptureError(f"{sj}: the session was captured with a drive of {float(was):g} microsteps per table degree, "
+                           f"this run's has {now:g} (--steps-per-rev x --microsteps x --gear-ratio / 360); {again}")
+    if cap.get("camera") is not None and cap["camera"] != settings["camera"]:
+        raise CaptureError(f"{sj}: the session was captured with camera {cap['camera']!r}, this run uses "
+                           f"{settings['camera']!r}; {again}")
+    given = doc.get("camera")
+    if intrinsics is not None:
+        K, dist = np.asarray(intrinsics.K, float), np.asarray(intrinsics.dist, float)
+        if given is None:
+            raise CaptureError(f"{sj}: the session was captured without known intrinsics, this run gives "
+                               f"fx {K[0, 0]:g}, fy {K[1, 1]:g}; {again}")
+        try:
+            same = np.allclose(np.asarray(given["K"], float), K, rtol=1e-9) and np.allclose(
+                np.asarray(given["dist"], float), dist, rtol=1e-9, atol=1e-12)
+        except (KeyError, TypeError, ValueError):
+            same = False
+        if not same:
+            gk = given.get("K") if isinstance(given, dict) else given
+            raise CaptureError(f"{sj}: camera: the session's intrinsics {str(gk)[:80]} differ from this run's "
+                               f"fx {K[0, 0]:g}, fy {K[1, 1]:g}, cc ({K[0, 2]:g}, {K[1, 2]:g}); {again}")
+
+
 def _todo(doc, angles):
     """Remaining (stage, index or angle) items, in capture order."""
     cap = doc["capture"]
@@ -341,9 +369,13 @@ def capture_session(
             raise CaptureError(f"{label} must be >= 0, got {v}")
     settings = {"step_deg": float(step_deg), "n_background": int(n_background), "n_intrinsic": int(n_intrinsic), "board": bool(board),
                 "turntable": repr(turntable), "camera": getattr(camera, "name", type(camera).__name__)}
+    steps = getattr(turntable, "steps_per_deg", None)
+    if steps is not None:
+        settings["steps_per_deg"] = float(steps)
     root.mkdir(parents=True, exist_ok=True)
     if (root / "session.json").exists():
         doc = _load_doc(root, settings)
+        _check_same_rig(root / "session.json", doc, settings, intrinsics)
         doc["capture"].update(turntable=settings["turntable"], camera=settings["camera"])
     else:
         doc = _new_doc(root, name=name, pattern=pattern, roi=roi or DEFAULT_ROI, reference=reference, intrinsics=intrinsics, settings=settings)
@@ -368,6 +400,15 @@ def capture_session(
         doc["capture"]["last_error"] = str(e)
         run.save()
         raise
+    except OSError as e:  # a full disk or a folder gone read-only: what is listed is on disk; one line
+        msg = (f"{root}: cannot write the capture ({e.strerror or e}{f': {e.filename}' if e.filename else ''}); free "
+               "some space and run the same command again to continue")
+        doc["capture"]["last_error"] = msg
+        try:
+            run.save()
+        except OSError:
+            pass  # session.json keeps the images listed at its last save (each written before it is listed)
+        raise CaptureError(msg) from None
     doc["capture"]["complete"] = True
     doc["capture"].pop("last_error", None)
     run.save()

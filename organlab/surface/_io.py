@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OrganlabError
 from ._mesh import Mesh
 
 
@@ -72,26 +73,41 @@ def read_ply(path: str | Path) -> Mesh:
     -------
     Mesh
     """
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    nv = nf = 0
-    has_color = False
-    for line in header:
-        parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            nv = int(parts[2])
-        elif parts[:2] == ["element", "face"]:
-            nf = int(parts[2])
-        elif parts[:2] == ["property", "uchar"] and parts[2] == "red":
-            has_color = True
-    vdtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("r", "u1"), ("g", "u1"), ("b", "u1")] if has_color else [])
-    vert = np.frombuffer(data, dtype=vdtype, count=nv, offset=end)
-    off = end + vert.nbytes
-    face = np.frombuffer(data, dtype=[("n", "u1"), ("i", "<i4", (3,))], count=nf, offset=off)
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise OrganlabError(f"{path}: cannot read ({e.strerror or e}); rewrite it with organlab") from None
+    try:
+        end = data.index(b"end_header\n") + len(b"end_header\n")
+        header = data[:end].decode("ascii").splitlines()
+        if not header or header[0] != "ply" or "format binary_little_endian 1.0" not in header:
+            raise ValueError("not a binary little-endian PLY")
+        nv = nf = 0
+        has_color = False
+        for line in header:
+            parts = line.split()
+            if parts[:2] == ["element", "vertex"]:
+                nv = int(parts[2])
+            elif parts[:2] == ["element", "face"]:
+                nf = int(parts[2])
+            elif parts[:2] == ["property", "uchar"] and parts[2:3] == ["red"]:
+                has_color = True
+        if nv < 0 or nf < 0:
+            raise ValueError("negative element count")
+        vdtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([("r", "u1"), ("g", "u1"), ("b", "u1")] if has_color else [])
+        vert = np.frombuffer(data, dtype=vdtype, count=nv, offset=end)
+        off = end + vert.nbytes
+        face = np.frombuffer(data, dtype=[("n", "u1"), ("i", "<i4", (3,))], count=nf, offset=off)
+    except (ValueError, IndexError, UnicodeDecodeError) as e:  # not a PLY as organlab writes it, or cut short
+        raise OrganlabError(f"{path}: not a mesh organlab can read ({e}); rewrite it with organlab") from None
     v = np.stack([vert["x"], vert["y"], vert["z"]], axis=1).astype(np.float64)
+    f = face["i"].astype(np.int64)
+    if not np.all(np.isfinite(v)) or np.any(face["n"] != 3) or (f.size and (f.min() < 0 or f.max() >= nv)):
+        raise OrganlabError(f"{path}: damaged mesh (non-finite vertices, or faces that are not triangles of its "
+                            "vertices); rewrite it with organlab")
     c = np.stack([vert["r"], vert["g"], vert["b"]], axis=1) if has_color else None
-    return Mesh(v, face["i"].astype(np.int64), c)
+    return Mesh(v, f, c)
 
 
 def write_obj(path: str | Path, mesh: Mesh) -> None:

@@ -13,6 +13,7 @@ from typing import Literal
 
 import numpy as np
 
+from .. import validate
 from ..bandfield import BandField
 from ..errors import OrganlabError
 from ..grid import VoxelGrid
@@ -83,26 +84,36 @@ def load_voxels(result_dir: str | Path) -> tuple[np.ndarray, VoxelGrid]:
         with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:
             try:
                 occ = z["occupancy"]
-                grid = VoxelGrid(z["origin_mm"], float(z["voxel_size_mm"]), occ.shape)
+                origin = validate.array(z["origin_mm"], (3,), "origin_mm", where=str(path))
+                vs = validate.number(z["voxel_size_mm"][()] if z["voxel_size_mm"].shape == () else None,
+                                      "voxel_size_mm", where=str(path), lo=0, lo_open=True)
             except KeyError as e:
                 raise OrganlabError(f"{path}: missing array {e}; {fix}") from None
-            if occ.ndim != 3:
-                raise OrganlabError(f"{path}: occupancy: shape {occ.shape}, expected (nx, ny, nz); {fix}")
+            if occ.ndim != 3 or occ.dtype.kind not in "bui" or 0 in occ.shape:
+                raise OrganlabError(f"{path}: occupancy: {occ.dtype} {occ.shape}, expected (nx, ny, nz) booleans; {fix}")
+            if not occ.any():
+                raise OrganlabError(f"{path}: occupancy: the model is empty (no voxel kept), there is no surface to "
+                                    "make; check the reconstruction's warnings and reconstruct again")
+            grid = VoxelGrid(origin, vs, occ.shape)
             if "colors" in z.files:  # colouring carved voxels the field knows nothing of
                 vol = occ
             elif "field_states" in z.files:
                 vol = BandField.from_arrays(z, grid, prefix="field_", source=path).dense()
             elif "field" in z.files:  # written by organlab before the band storage
                 vol = z["field"]
-                if vol.shape != occ.shape:
-                    raise OrganlabError(f"{path}: field: shape {vol.shape}, expected the occupancy's {occ.shape}; {fix}")
+                if vol.shape != occ.shape or vol.dtype.kind != "f":
+                    raise OrganlabError(f"{path}: field: shape {vol.shape}, expected the occupancy's {occ.shape} "
+                                        f"in floats (got {vol.dtype}); {fix}")
             else:
                 vol = occ
     except OrganlabError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+    except (OSError, ValueError, TypeError, IndexError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         raise OrganlabError(f"{path}: unreadable ({type(e).__name__}: {e}); {fix}") from None
-    return np.asarray(vol, dtype=np.float32), grid
+    vol = np.asarray(vol, dtype=np.float32)
+    if not np.all(np.isfinite(vol)):
+        raise OrganlabError(f"{path}: the field holds non-finite numbers; {fix}")
+    return vol, grid
 
 
 def mesh_result(result_dir: str | Path, *, repair: bool = True, smooth: bool = True, remesh: Literal["auto"] | float | None = "auto",

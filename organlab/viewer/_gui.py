@@ -2,14 +2,24 @@
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
 
+from ..errors import OrganlabError
+from ..preflight import check_grid_memory
 from . import _scene
 
 METHODS = ("hull", "coloring", "space_carving")
 HULLS = ("subvoxel", "thesis")
+MODELS = ("mesh", "voxels", "mesh + voxels")
+#: Bounds of the controls, enforced on the server: viser does not enforce a slider's limits, and a
+#: crafted message set a 0.05 mm voxel or a 3 m roi (30-45 s at 2.8 GB while newer requests waited).
+THRESHOLD_RANGE = (1.0, 80.0)
+VOXEL_RANGE = (0.5, 5.0)
+COLOR_THRESHOLD_RANGE = (1.0, 60.0)
+ROI_SIDE_RANGE = (1.0, 1000.0)  # mm
 
 
 class Controls:
@@ -70,7 +80,7 @@ class Controls:
             self.roi_info = gui.add_markdown("")
             self.roi_apply = gui.add_button("Apply roi and re-run")
         with gui.add_folder("Display"):
-            self.model = gui.add_dropdown("Model", ("mesh", "voxels", "mesh + voxels"), initial_value="mesh",
+            self.model = gui.add_dropdown("Model", MODELS, initial_value="mesh",
                                           hint="the carved surface voxels, the mesh, or both")
             self.show_views_box = gui.add_checkbox("Cameras", initial_value=True)
             self.aaa_box = gui.add_checkbox("AAA measures", initial_value=True, disabled=not app.is_aaa,
@@ -95,50 +105,108 @@ class Controls:
         return bool(self.aaa_box.value)
 
     def _settings_changed(self, **changes):
+        """Re-run with ``changes``, after the grid memory pre-flight of what it would build."""
+        lo, hi = changes["roi"] if "roi" in changes else self.roi()
+        vs = changes.get("voxel_size", self._bounded(self.voxel, *VOXEL_RANGE))
+        tol = changes.get("tolerance", self._bounded(self.tolerance, 0, self._max_tolerance, integer=True))
+        try:
+            check_grid_memory(lo, hi, vs, tolerance=tol, where="viewer")
+        except OrganlabError as e:
+            self.show_status(f"not run: {e}")
+            return
         self.app.rerun(**changes)
+
+    @property
+    def _max_tolerance(self):
+        return max(0, min(5, len(self.app.cameras) - 1))
+
+    def _bounded(self, handle, lo, hi, *, integer=False):
+        """The control's value within ``[lo, hi]`` (finite; an int with ``integer``); shown corrected when it was not."""
+        v = handle.value
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            x = lo
+        x = min(max(x if math.isfinite(x) else lo, lo), hi)
+        if integer:
+            x = int(round(x))
+        if x != v:
+            self._set_quietly(handle, x)
+        return x
+
+    def _choice(self, handle, options):
+        """The dropdown's value when it is one of ``options``, else the first (shown corrected)."""
+        if handle.value not in options:
+            self._set_quietly(handle, options[0])
+        return handle.value
+
+    def _roi_size(self):
+        size = self.roi_size.value
+        try:
+            v = np.asarray(size, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError):
+            v = np.full(3, 100.0)
+        v = np.clip(np.where(np.isfinite(v), v, ROI_SIDE_RANGE[0]), *ROI_SIDE_RANGE)
+        if tuple(v) != tuple(size):
+            self._set_quietly(self.roi_size, tuple(float(x) for x in v))
+        return v
 
     def _wire(self):
         app = self.app
 
         @self.threshold.on_update
         def _(_e):
+            if self._quiet:
+                return
+            t = self._bounded(self.threshold, *THRESHOLD_RANGE)
             self.auto.value = False
-            self._settings_changed(threshold=float(self.threshold.value))
+            self._settings_changed(threshold=t)
 
         @self.auto.on_update
         def _(_e):
-            self._settings_changed(threshold=None if self.auto.value else float(self.threshold.value))
+            self._settings_changed(threshold=None if self.auto.value else self._bounded(self.threshold, *THRESHOLD_RANGE))
 
         @self.voxel.on_update
         def _(_e):
+            if self._quiet:
+                return
+            vs = self._bounded(self.voxel, *VOXEL_RANGE)
             self._update_roi_info()
-            self._settings_changed(voxel_size=float(self.voxel.value))
+            self._settings_changed(voxel_size=vs)
 
         @self.method.on_update
         def _(_e):
-            self.color_threshold.disabled = self.color_auto.disabled = self.method.value == "hull"
-            self._settings_changed(method=self.method.value)
+            if self._quiet:
+                return
+            method = self._choice(self.method, METHODS)
+            self.color_threshold.disabled = self.color_auto.disabled = method == "hull"
+            self._settings_changed(method=method)
 
         @self.hull.on_update
         def _(_e):
-            self._settings_changed(hull=self.hull.value)
+            if not self._quiet:
+                self._settings_changed(hull=self._choice(self.hull, HULLS))
 
         @self.color_threshold.on_update
         def _(_e):
             if self._quiet:
                 return
             self._set_quietly(self.color_auto, False)
-            self._settings_changed(color_threshold=float(self.color_threshold.value))
+            self._settings_changed(color_threshold=self._bounded(self.color_threshold, *COLOR_THRESHOLD_RANGE))
 
         @self.color_auto.on_update
         def _(_e):
             if not self._quiet:
-                self._settings_changed(color_threshold=None if self.color_auto.value else float(self.color_threshold.value))
+                self._settings_changed(color_threshold=None if self.color_auto.value else
+                                       self._bounded(self.color_threshold, *COLOR_THRESHOLD_RANGE))
 
         @self.tolerance.on_update
         def _(_e):
+            if self._quiet:
+                return
+            tol = self._bounded(self.tolerance, 0, self._max_tolerance, integer=True)
             self._update_roi_info()
-            self._settings_changed(tolerance=int(self.tolerance.value))
+            self._settings_changed(tolerance=tol)
 
         @self.rerun_button.on_click
         def _(_e):
@@ -149,11 +217,12 @@ class Controls:
     def _wire_views(self):
         @self.view.on_update
         def _(_e):
-            self.select(int(self.view.value))
+            if not self._quiet:
+                self.select(self._view_index())
 
         @self.look.on_click
         def _(e):
-            self.look_through(int(self.view.value), e.client)
+            self.look_through(self._view_index(), e.client)
 
         @self.leave.on_click
         def _(_e):
@@ -170,6 +239,9 @@ class Controls:
 
         @self.carve_step.on_update
         def _(_e):
+            if self._quiet:
+                return
+            self._bounded(self.carve_step, -1, max(len(self.app.cameras) - 1, 0), integer=True)
             if self.carve_show.value:
                 self._carve_display()
 
@@ -179,6 +251,9 @@ class Controls:
 
         @self.roi_size.on_update
         def _(_e):
+            if self._quiet:
+                return
+            self._roi_size()
             self._update_roi_box()
 
         @self.roi_apply.on_click
@@ -188,6 +263,7 @@ class Controls:
 
         @self.model.on_update
         def _(_e):
+            self._choice(self.model, MODELS)
             self.live.set_visible("mesh", self.show_mesh)
             self.live.set_visible("voxels", self.show_voxels)
 
@@ -219,7 +295,7 @@ class Controls:
         self.status.content = f"*{text}*"
 
     def views_added(self):
-        self.select(int(self.view.value))
+        self.select(self._view_index())
 
     def show_result(self, res):
         mesh = res.mesh
@@ -250,7 +326,7 @@ class Controls:
                 self._set_quietly(self.color_threshold, round(res.color_threshold * 2) / 2)
         self.measure.content = "  \n".join(lines)
         self.show_status(self.app.status)
-        self.select(int(self.view.value))
+        self.select(self._view_index())
         if self.carve_show.value:
             self._carve_display()
 
@@ -287,7 +363,7 @@ class Controls:
         if self.live._carved is None or getattr(self, "_carved_for", None) is not res:
             self.live.set_carved_by_view(views, res.occupancy, res.grid)
             self._carved_for = res
-        step = int(self.carve_step.value)
+        step = self._bounded(self.carve_step, -1, max(len(self.app.cameras) - 1, 0), integer=True)
         n = self.live.show_carve_step(None if step < 0 else step)
         which = "all views" if step < 0 else f"view {self.app.view_ids[step]}"
         total = int((views >= 0).sum())
@@ -297,16 +373,20 @@ class Controls:
             self.view.value = step
 
     # ------------------------------------------------------------ roi
+    def _view_index(self):
+        return self._bounded(self.view, 0, max(len(self.app.cameras) - 1, 0), integer=True)
+
     def roi(self):
-        size = np.asarray(self.roi_size.value, float)
+        size = self._roi_size()
         c = np.asarray(self._roi_centre, float)
         return c - size / 2, c + size / 2
 
     def _update_roi_info(self):
         lo, hi = self.roi()
-        n, b = _scene.roi_stats(lo, hi, float(self.voxel.value), int(self.tolerance.value))
+        vs = self._bounded(self.voxel, *VOXEL_RANGE)
+        n, b = _scene.roi_stats(lo, hi, vs, self._bounded(self.tolerance, 0, self._max_tolerance, integer=True))
         self.roi_info.content = (
-            f"{n:,} voxels at {float(self.voxel.value):g} mm, about {_scene.human_bytes(b)}  \n"
+            f"{n:,} voxels at {vs:g} mm, about {_scene.human_bytes(b)}  \n"
             f"min {np.round(lo, 1).tolist()} max {np.round(hi, 1).tolist()} mm"
         )
 
@@ -318,7 +398,7 @@ class Controls:
                     h.remove()
             self._roi_box = self._roi_gizmo = None
             return
-        size = float(np.linalg.norm(self.roi_size.value))
+        size = float(np.linalg.norm(self._roi_size()))
         self._roi_gizmo = sc.add_transform_controls(
             "/roi", scale=0.35 * size, disable_rotations=True, position=tuple(self._roi_centre),
             translation_limits=tuple((-5 * size, 5 * size) for _ in range(3)),
@@ -335,5 +415,5 @@ class Controls:
         if self._roi_gizmo is None:
             return
         self._roi_box = self.live.server.scene.add_box(
-            "/roi/box", color=(255, 150, 0), dimensions=tuple(float(v) for v in self.roi_size.value), wireframe=True,
+            "/roi/box", color=(255, 150, 0), dimensions=tuple(float(v) for v in self._roi_size()), wireframe=True,
         )
