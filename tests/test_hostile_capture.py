@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from organlab.camera import Camera
-from organlab.capture import CaptureError, SimRig, StallError, capture_session
+from organlab.capture import CaptureError, StallError, capture_session
+from organlab.synthetic import SimRig
 from organlab.capture._run import read_intrinsics
 
 

@@ -305,7 +305,7 @@ def test_mesh_reader(result_dir, tmp_path_factory):
 
 @pytest.mark.slow
 def test_camera_file_readers(tmp_path_factory):
-    from organlab.calibio import read_camera, write_bouguet, write_opencv
+    from organlab.calibration import read_camera, write_bouguet, write_opencv
     from organlab.camera import Camera
 
     folder = tmp_path_factory.mktemp("camfiles")

@@ -156,7 +156,8 @@ def test_mesh_of_an_empty_model_is_one_line(tmp_path, capsys):
 def test_full_disk_during_capture_keeps_what_was_taken_and_a_rerun_completes(tmp_path, monkeypatch):
     import errno
 
-    from organlab.capture import CaptureError, SimRig, capture_session
+    from organlab.capture import CaptureError, capture_session
+    from organlab.synthetic import SimRig
     from organlab.capture import _session as cs
 
     real, calls = cs._write_png, []
