@@ -69,6 +69,9 @@ def _parser():
     r.add_argument("--max-memory", default=None, metavar="SIZE",
                    help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
     r.add_argument("--measure", action="store_true", help="AAA measurements in the report (default: when the session is an AAA)")
+    r.add_argument("--refine-poses", choices=["auto", "on", "off"], default="auto",
+                   help="correct the poses from the silhouettes (a bumped camera, a table that lost steps, a specimen that "
+                        "slid), kept only when views left out of the fit agree better; auto: when views disagree (default)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
@@ -259,6 +262,7 @@ def _reconstruct(a):
         max_memory=max_memory,
         finish=not a.raw_surface,
         measure=True if a.measure else None,
+        refine_poses=a.refine_poses,
     )
     with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
         paths = write_outputs(rec, tmp, atomic=False)

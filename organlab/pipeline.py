@@ -28,6 +28,7 @@ from . import __version__
 from ._progress import NullProgress
 from .errors import SessionError
 from .grid import VoxelGrid
+from .poses import refine_poses as _refine_poses
 from .session import Session, load_session, write_json
 
 __all__ = ["Reconstruction", "session_cameras", "reconstruct", "write_outputs", "summary_table", "HULL_METHODS", "METHODS"]
@@ -192,6 +193,7 @@ def reconstruct(
     max_memory=None,
     finish=True,
     measure=None,
+    refine_poses="auto",
 ):
     """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
 
@@ -241,6 +243,9 @@ def reconstruct(
     measure : bool, optional
         AAA measurements (:func:`organlab.surface.measure_aaa`); default: when
         the session says its specimen is an AAA.
+    refine_poses : {'auto', 'on', 'off'}
+        Correct the poses from the silhouettes (:func:`organlab.poses.refine_poses`),
+        kept only when the leave-out gate accepts; ``'auto'``: when views disagree.
 
     Returns
     -------
@@ -251,6 +256,8 @@ def reconstruct(
     if not isinstance(session, Session):
         session = load_session(session)
     _check_options(session, voxel_size, threshold, method, hull)
+    if refine_poses not in ("auto", "on", "off"):
+        raise ValueError(f"refine_poses must be 'auto', 'on' or 'off', got {refine_poses!r}")
     stages = _Stages(progress)
 
     _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory)
@@ -258,6 +265,8 @@ def reconstruct(
     cameras = cal.cameras(session)
     images = session.images()  # read once: colouring needs the same images
     sils = stages.run("silhouettes", silhouettes, session, images=images, threshold=threshold)
+    poses = _refine_poses(session, cal, sils, mode=refine_poses, cameras=cameras, names=[session.relpath(v.image) for v in session.views])
+    cameras, stages.timings["poses"] = poses.cameras, poses.seconds
     grid = VoxelGrid.from_session(session, voxel_size)
     occupancy, field = stages.run("carving", _carve, sils, cameras, grid, hull=hull, tolerance=tolerance)
     if not occupancy.any():
@@ -276,6 +285,7 @@ def reconstruct(
                                             finish=finish, measure=measure, cameras=cameras)
     report = _report(session, grid, occupancy, mesh, cameras, cal, how, sils, stages.timings, method, hull)
     report.update(extra)
+    report["poses"] = poses.to_dict()
     if coloring_info is not None:
         report["coloring"] = coloring_info
     _add_checks(report, session, grid, mesh, cameras, sils, cal)
@@ -494,6 +504,8 @@ def summary_table(report):
         a = report["aaa"]
         rows.append(("AAA max diameter", f"{a['max_diameter_mm']:.1f} mm at z {a['max_location_mm'][2]:.1f} mm, "
                      f"sac {a['sac_length_mm']:.0f} mm"))
+    if report.get("poses"):
+        rows.append(("poses", report["poses"]["reason"]))
     source = report.get("calibration", {}).get("source")
     if source:
         rows.append(("calibration", source))
