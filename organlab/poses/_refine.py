@@ -111,9 +111,10 @@ def refine_poses(session, calibration, silhouettes, *, mode="auto", cameras=None
 
     Parameters
     ----------
-    session : organlab.session.Session
-        Its views' table angles (and given poses) are used.
-    calibration : organlab.calibration.Calibration
+    session : organlab.session.Session or None
+        Its views' table angles (and given poses) are used; ``None``: the
+        ``cameras`` are given poses (e.g. published ones) on a ring.
+    calibration : organlab.calibration.Calibration or None
         The board-based calibration (intrinsics and, for views without a
         given pose, the turntable: the camera at table angle 0).
     silhouettes : sequence of Silhouette or (H, W) arrays
@@ -149,6 +150,8 @@ def refine_poses(session, calibration, silhouettes, *, mode="auto", cameras=None
         return PoseRefinement(cameras=list(cameras) if cameras is not None else [], accepted=False, mode=mode,
                               reason="off (--refine-poses off)")
     if cameras is None:
+        if calibration is None or session is None:
+            raise ValueError("give cameras, or a session and its calibration")
         cameras = calibration.cameras(session)
     cameras = list(cameras)
     covs = as_arrays(list(silhouettes), "coverage")
@@ -160,12 +163,14 @@ def refine_poses(session, calibration, silhouettes, *, mode="auto", cameras=None
 
 
 def _build_model(session, calibration, cameras):
-    views = session.views
-    n = len(views)
+    n = len(cameras)
     if n < 4:
         return None, f"only {n} views: too few to refine"
-    angles = np.array([v.angle_deg if v.angle_deg is not None else np.nan for v in views], dtype=np.float64)
-    posed = [v.pose is not None for v in views]
+    if session is None:  # cameras given as they are (published poses)
+        angles, posed = np.full(n, np.nan), [True] * n
+    else:
+        angles = np.array([v.angle_deg if v.angle_deg is not None else np.nan for v in session.views], dtype=np.float64)
+        posed = [v.pose is not None for v in session.views]
     tt = getattr(calibration, "turntable", None)
     if not any(posed) and tt is not None and np.all(np.isfinite(angles)):
         return Model("turntable", n, angles, base=tt.camera), ""
@@ -218,23 +223,27 @@ def _refine(session, calibration, covs, cameras, mode, names):
     if mode == "auto" and not flagged:
         return PoseRefinement(reason=f"skipped: every view agrees (largest tangent RMS {np.nanmax(before):.2f} px "
                               f"<= {FLAG_PX} px)", **base)
-    # two candidates: the shared pose (and a slip) alone, and with the angles too; the
-    # leave-out gate keeps the angles only when views left out agree better with them
+    # candidates: the shared camera pose alone, the angles alone, both (each with a slip when
+    # one is found); the leave-out gate picks the simplest that views left out agree best with
+    kinds = ((True, False), (False, True), (True, True)) if model.kind == "turntable" else ((False, True),)
     cands = []
-    for free in ((False, True) if model.kind == "turntable" else (True,)):
-        m = replace(model, angles_free=free)
+    for shared, free in kinds:
+        m = replace(model, shared=shared, angles_free=free)
         p = Problem(m, H, cen, f, pairs=(pb.I, pb.J))
-        x, _ = p.fit(x0)
+        x, _ = p.fit(np.zeros(m.n_params))
         slip = None
         if m.kind == "turntable" and m.n >= 8:
             x, p, m, slip = _try_slip(p, m, x, H, cen, f)
         cands.append((m, p, x, slip, _gate(p, m, x)))
     pick = cands[0]
-    if len(cands) > 1 and cands[1][4]["after_px"] < cands[0][4]["after_px"] - GATE_MIN_PX / 2:
-        pick = cands[1]
+    for c in cands[1:]:  # a richer model must do better by a margin
+        if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
+            pick = c
     model, pb, x, slip, gate = pick
-    gate["angles_refined"] = bool(model.angles_free)
-    gate["left_out_px_without_angles"] = _f(cands[0][4]["after_px"])
+    gate["refined"] = ("camera pose" if model.n_shared else "") + (" and " if model.n_shared and model.angles_free else "") + (
+        "angles" if model.angles_free else "")
+    gate["candidates"] = {("camera+angles" if c[0].n_shared and c[0].angles_free else "camera" if c[0].n_shared else "angles"):
+                          _f(c[4]["after_px"]) for c in cands}
     after = pb.view_rms(x)
     w, tau, d, s = model.split(x)
     R, t = model.poses(x)
