@@ -34,8 +34,13 @@ from ._tangents import MAX_HALF_ANGLE_DEG, pair_angles
 
 SIGMA_ANGLE_DEG = 3.0
 SIGMA_SMOOTH_DEG = 0.1
-SIGMA_ROTATION_DEG = 2.0
-SIGMA_TRANSLATION_MM = 5.0
+SIGMA_ROTATION_DEG = 1.0
+#: About the camera's X axis (its tilt toward the table): the silhouettes of a specimen
+#: near symmetric about the axis pin it least (it trades with the model's height and shape).
+SIGMA_PITCH_DEG = 0.25
+#: Weight of the tangents that touch a silhouette's foot on the plate (the least reliable outline).
+FOOT_WEIGHT = 0.0
+SIGMA_TRANSLATION_MM = 2.0
 SIGMA_SLIP_MM = 5.0
 SIGMA_SLIP_DEG = 5.0
 #: Tangent residuals are divided by this (px): their noise on clean renders.
@@ -142,7 +147,7 @@ class Model:
             dd = d[2:] - 2 * d[1:-1] + d[:-2]
             out.append(dd / SIGMA_SMOOTH_DEG)
         if self.n_shared:
-            out.append(np.rad2deg(w) / SIGMA_ROTATION_DEG)
+            out.append(np.rad2deg(w) / np.array([SIGMA_PITCH_DEG, SIGMA_ROTATION_DEG, SIGMA_ROTATION_DEG]))
             out.append(tau / SIGMA_TRANSLATION_MM)
         if slip is not None:
             out.append(slip[:2] / SIGMA_SLIP_MM)
@@ -153,7 +158,7 @@ class Model:
 class Problem:
     """Tangent residuals of every usable pair under a :class:`Model`."""
 
-    def __init__(self, model, rays_cam, centroid_cam, f_px, *, pairs=None, x0=None):
+    def __init__(self, model, rays_cam, centroid_cam, f_px, *, pairs=None, x0=None, low=None):
         self.model = model
         self.rays_cam = rays_cam  # (n, M, 3)
         self.centroid_cam = centroid_cam  # (n, 3)
@@ -163,6 +168,17 @@ class Problem:
             pairs = self._usable_pairs(x0)
         self.I, self.J = pairs
         self.scale = self._scale(x0)
+        # tangents that touch a silhouette's foot (where it meets the plate: shadows, the least
+        # reliable outline) are left out, decided once at the starting poses
+        self.keep = np.ones((len(self.I), 2))
+        if low is not None:
+            rays_w, C, cen_w = self._geometry(x0)
+            _, _, _, idx = pair_angles(rays_w, C, cen_w, self.I, self.J, return_index=True)
+            li, lj = low[self.I], low[self.J]
+            P = np.arange(len(self.I))
+            for side in (0, 1):
+                bad = li[P, idx[:, side]] | lj[P, idx[:, 2 + side]]
+                self.keep[bad, side] = FOOT_WEIGHT
         self.by_view = [np.nonzero((self.I == v) | (self.J == v))[0] for v in range(model.n)]
 
     def _geometry(self, x):
@@ -193,7 +209,8 @@ class Problem:
         rays_w, C, cen_w = self._geometry(x)
         psi, _, _ = pair_angles(rays_w, C, cen_w, I, J)
         sc = self.scale if sel is None else self.scale[sel]
-        return (psi[:, :2] - psi[:, 2:]) * sc[:, None]
+        kp = self.keep if sel is None else self.keep[sel]
+        return (psi[:, :2] - psi[:, 2:]) * sc[:, None] * kp
 
     def residuals(self, x, weights=None):
         r = self.pair_residuals(x)
@@ -226,7 +243,7 @@ class Problem:
             J[2 * P :, k] = (m.prior(xk) - p0) / h
         return J
 
-    def fit(self, x0, *, weights=None, max_iter=40):
+    def fit(self, x0, *, weights=None, max_iter=30):
         """Robust Levenberg-Marquardt (soft-L1, :data:`F_SCALE`), deterministic; returns ``(x, info)``."""
         return robust_lm(lambda x: self.residuals(x, weights), lambda x: self.jacobian(x, weights), x0, max_iter=max_iter)
 
@@ -254,7 +271,7 @@ def cost(r, f_scale=F_SCALE):
     return float(_soft_l1(np.asarray(r, np.float64), f_scale)[0].sum())
 
 
-def robust_lm(fun, jac, x0, *, f_scale=F_SCALE, max_iter=40, tol=1e-7):
+def robust_lm(fun, jac, x0, *, f_scale=F_SCALE, max_iter=30, tol=1e-6):
     """Levenberg-Marquardt on a soft-L1 loss by iteratively reweighted normal equations.
 
     Small problems (tens of parameters): the normal equations are solved

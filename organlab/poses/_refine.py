@@ -17,8 +17,10 @@ MODES = ("auto", "on", "off")
 #: ('auto' refines when any is).  Measured on correct renders at 320 x 240
 #: (aaa-7, dented: largest view 0.29, 0.24 px) and 640 x 480 (see docs/trust.md).
 FLAG_PX = 0.45
+#: Outline points this close to a silhouette's lowest row (px) are its foot on the plate.
+FOOT_PX = 4.0
 #: Folds of the leave-out gate: views ``i % GATE_FOLDS == f`` are left out of fit ``f``.
-GATE_FOLDS = 4
+GATE_FOLDS = 3
 #: The gate accepts when the left-out views' median RMS falls below this fraction of its value before ...
 GATE_RATIO = 0.8
 #: ... and by at least this much, px.
@@ -203,16 +205,19 @@ def _refine(session, calibration, covs, cameras, mode, names):
     if model is None:
         return PoseRefinement(reason=f"not refined: {why}", **base)
     cam0 = cameras[0]
-    rays = []
+    rays, lows = [], []
     for c, cam in zip(covs, cameras):
         r, _ = outline_rays(c, cam)
         if len(r) < 3:
             return PoseRefinement(reason="not refined: a view has no silhouette outline", **base)
         rays.append(r)
+        v = r[:, 1] * cam.K[1, 1] + cam.K[1, 2]
+        lows.append(v > v.max() - FOOT_PX)
     H = pad_rays(rays)
+    low = pad_rays([np.repeat(lw[:, None], 3, axis=1).astype(float) for lw in lows])[:, :, 0] > 0.5
     cen = np.stack([r.mean(0) for r in rays])
     f = float(np.sqrt(cam0.K[0, 0] * cam0.K[1, 1]))
-    pb = Problem(model, H, cen, f)
+    pb = Problem(model, H, cen, f, low=low)
     if len(pb.I) < 2 * model.n:
         return PoseRefinement(reason=f"not refined: only {len(pb.I)} usable view pairs", model=model.kind, **base)
     x0 = np.zeros(model.n_params)
@@ -226,15 +231,19 @@ def _refine(session, calibration, covs, cameras, mode, names):
     # candidates: the shared camera pose alone, the angles alone, both (each with a slip when
     # one is found); the leave-out gate picks the simplest that views left out agree best with
     kinds = ((True, False), (False, True), (True, True)) if model.kind == "turntable" else ((False, True),)
+    slip_view, slip = None, None
+    if model.kind == "turntable" and model.n >= 8:  # a slip, looked for once with the camera pose free (angles held)
+        m = replace(model, shared=True, angles_free=False)
+        p = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
+        x, _ = p.fit(np.zeros(m.n_params))
+        _, _, m_s, slip = _try_slip(p, m, x, H, cen, f, low)
+        slip_view = m_s.slip_view if slip is not None else None
     cands = []
     for shared, free in kinds:
-        m = replace(model, shared=shared, angles_free=free)
-        p = Problem(m, H, cen, f, pairs=(pb.I, pb.J))
+        m = replace(model, shared=shared, angles_free=free, slip_view=slip_view)
+        p = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
         x, _ = p.fit(np.zeros(m.n_params))
-        slip = None
-        if m.kind == "turntable" and m.n >= 8:
-            x, p, m, slip = _try_slip(p, m, x, H, cen, f)
-        cands.append((m, p, x, slip, _gate(p, m, x)))
+        cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x)))
     pick = cands[0]
     for c in cands[1:]:  # a richer model must do better by a margin
         if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
@@ -278,15 +287,15 @@ def _split_score(pb, x, n):
     return scores
 
 
-def _try_slip(pb, model, x, H, cen, f):
+def _try_slip(pb, model, x, H, cen, f, low=None):
     """Fit a specimen slip at the best split; keep it when it explains the views much better."""
     n = model.n
     info0 = {"cost": _model.cost(pb.residuals(x))}
     scores = _split_score(pb, x, n)
     best = None
-    for k in [int(i) for i in np.argsort(scores)[::-1][:2] if np.isfinite(scores[i])]:
+    for k in [int(i) for i in np.argsort(scores)[::-1][:1] if np.isfinite(scores[i])]:
         ms = replace(model, slip_view=k)
-        ps = Problem(ms, H, cen, f, pairs=(pb.I, pb.J))
+        ps = Problem(ms, H, cen, f, pairs=(pb.I, pb.J), low=low)
         xs, info = ps.fit(np.concatenate([x, np.zeros(3)]))
         if best is None or info["cost"] < best[0]:
             best = (info["cost"], k, ms, ps, xs)
@@ -297,6 +306,14 @@ def _try_slip(pb, model, x, H, cen, f):
     slip = {"view": k, "translation_mm": [round(float(s[0]), 3), round(float(s[1]), 3)], "rotation_deg": round(float(s[2]), 3),
             "cost_ratio": round(cost / info0["cost"], 3)}
     return xs, ps, ms, slip
+
+
+def _slip_entry(model, x, found):
+    if model.slip_view is None:
+        return None
+    s = model.split(x)[3]
+    return {"view": model.slip_view, "translation_mm": [round(float(s[0]), 3), round(float(s[1]), 3)],
+            "rotation_deg": round(float(s[2]), 3), "cost_ratio": found.get("cost_ratio") if found else None}
 
 
 def _gate(pb, model, x):

@@ -85,7 +85,7 @@ def pad_rays(ray_sets):
     return out
 
 
-def pair_angles(rays_w, centres, centroid_w, I, J):
+def pair_angles(rays_w, centres, centroid_w, I, J, *, return_index=False):
     """Extremal epipolar planes of each view of each pair, as angles about the baseline.
 
     Parameters
@@ -122,4 +122,7 @@ def pair_angles(rays_w, centres, centroid_w, I, J):
     rcj = centroid_w[J] / np.linalg.norm(centroid_w[J], axis=1, keepdims=True)
     sin_j = np.linalg.norm(rcj - np.sum(rcj * b, axis=1, keepdims=True) * b, axis=1)
     psi = np.stack([pi.min(axis=1), pi.max(axis=1), pj.min(axis=1), pj.max(axis=1)], axis=1)
+    if return_index:
+        idx = np.stack([pi.argmin(axis=1), pi.argmax(axis=1), pj.argmin(axis=1), pj.argmax(axis=1)], axis=1)
+        return psi, sin_i, sin_j, idx
     return psi, sin_i, sin_j
