@@ -87,7 +87,7 @@ def main(argv=None):
         ct = -Rt.T @ tt
         c0 = np.linalg.norm(cal.cameras(s)[0].center - ct)
         c1 = np.linalg.norm(r.cameras[0].center - ct)
-        print(f"{name}: {wall:.2f} s wall, {cpu:.2f} s CPU; {r.reason}")
+        print(f"{name}: {wall:.2f} s wall, {cpu:.2f} s CPU; largest view residual before {np.nanmax(r.before_px):.3f} px; {r.reason}")
         print(f"  angle error median/max {np.median(e0):.3f}/{e0.max():.3f} -> {np.median(e1):.3f}/{e1.max():.3f} deg; "
               f"camera centre error {c0:.2f} -> {c1:.2f} mm; slip {r.slip}; candidates {r.gate.get('candidates')}")
         if a.voxel_size:

@@ -15,8 +15,8 @@ MODES = ("auto", "on", "off")
 
 #: A view whose tangent residuals (RMS over its pairs, px) exceed this is flagged
 #: ('auto' refines when any is).  Measured on correct renders at 320 x 240
-#: (aaa-7, dented: largest view 0.29, 0.24 px) and 640 x 480 (see docs/trust.md).
-FLAG_PX = 0.45
+#: (aaa-7, dented: largest view 0.23, 0.19 px; a slip 0.53, a bump 3.3) and 640 x 480 (docs/trust.md).
+FLAG_PX = 0.3
 #: Outline points this close to a silhouette's lowest row (px) are its foot on the plate.
 FOOT_PX = 4.0
 #: Folds of the leave-out gate: views ``i % GATE_FOLDS == f`` are left out of fit ``f``.
@@ -238,6 +238,8 @@ def _refine(session, calibration, covs, cameras, mode, names):
         x, _ = p.fit(np.zeros(m.n_params))
         _, _, m_s, slip = _try_slip(p, m, x, H, cen, f, low)
         slip_view = m_s.slip_view if slip is not None else None
+    if slip_view is not None:  # simplest first: the specimen moved, nothing else
+        kinds = ((False, False),) + kinds
     cands = []
     for shared, free in kinds:
         m = replace(model, shared=shared, angles_free=free, slip_view=slip_view)
@@ -249,10 +251,8 @@ def _refine(session, calibration, covs, cameras, mode, names):
         if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
             pick = c
     model, pb, x, slip, gate = pick
-    gate["refined"] = ("camera pose" if model.n_shared else "") + (" and " if model.n_shared and model.angles_free else "") + (
-        "angles" if model.angles_free else "")
-    gate["candidates"] = {("camera+angles" if c[0].n_shared and c[0].angles_free else "camera" if c[0].n_shared else "angles"):
-                          _f(c[4]["after_px"]) for c in cands}
+    gate["refined"] = _kind(model)
+    gate["candidates"] = {_kind(c[0]): _f(c[4]["after_px"]) for c in cands}
     after = pb.view_rms(x)
     w, tau, d, s = model.split(x)
     R, t = model.poses(x)
@@ -273,6 +273,11 @@ def _refine(session, calibration, covs, cameras, mode, names):
                 "(a rotation-symmetric specimen hides its angles); poses left as calibrated"),
         **base,
     )
+
+
+def _kind(m):
+    parts = (["camera"] if m.n_shared else []) + (["angles"] if m.angles_free else []) + (["slip"] if m.slip_view is not None else [])
+    return "+".join(parts) or "nothing"
 
 
 def _split_score(pb, x, n):
