@@ -89,6 +89,14 @@ def test_bumped_camera_is_corrected(tmp_path_factory):
     assert abs(v_ref / v_true - 1) < 0.01
     d = r.to_dict()
     assert d["accepted"] and d["camera_rotation_deg"] > 0.4 and d["tangent_rms_px"]["after_median"] < 0.5
+    # the pipeline carves with the refined cameras and reports it
+    from organlab.pipeline import reconstruct
+
+    rep = reconstruct(s, voxel_size=2.0, finish=False).report
+    assert rep["poses"]["accepted"] and rep["poses"]["mode"] == "auto" and "timings_s" in rep and "poses" in rep["timings_s"]
+    assert abs(rep["mesh_volume_mm3"] / v_ref - 1) < 1e-6
+    with pytest.raises(ValueError, match="refine_poses must be"):
+        reconstruct(s, voxel_size=2.0, refine_poses="always")
 
 
 @pytest.mark.slow

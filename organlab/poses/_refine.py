@@ -27,6 +27,9 @@ GATE_RATIO = 0.8
 GATE_MIN_PX = 0.05
 #: A slip is kept when the fit with it lowers the robust cost below this fraction of the fit without.
 SLIP_GAIN = 0.6
+#: ... and when the specimen moved at least this far on the plate, mm (a turn alone is a step
+#: in the angles: measured on a drifting table, a 'slip' of 0.02 mm and 1 degree at the middle view).
+SLIP_MIN_MM = 0.25
 
 
 @dataclass
@@ -308,6 +311,8 @@ def _try_slip(pb, model, x, H, cen, f, low=None):
         return x, pb, model, None
     cost, k, ms, ps, xs = best
     s = ms.split(xs)[3]
+    if np.hypot(s[0], s[1]) < SLIP_MIN_MM:  # a turn alone is a step of the angles, not a slide
+        return x, pb, model, None
     slip = {"view": k, "translation_mm": [round(float(s[0]), 3), round(float(s[1]), 3)], "rotation_deg": round(float(s[2]), 3),
             "cost_ratio": round(cost / info0["cost"], 3)}
     return xs, ps, ms, slip
