@@ -6,6 +6,7 @@ writes by hand), plus progress bars and timings::
     cal, how = calibration_for(session)        # organlab.calibration
     cameras = cal.cameras(session)
     sils = silhouettes(session)                # organlab.silhouette
+    cameras = refine_poses(session, cal, sils, cameras=cameras).cameras  # organlab.poses
     grid = VoxelGrid.from_session(session, voxel_size=1.0)
     field = hull_field(sils, cameras, grid, sparse=True)  # organlab.carving
     mesh = mesh_from_field(field, grid)        # organlab.surface
