@@ -267,7 +267,7 @@ def reconstruct(
     images = session.images()  # read once: colouring needs the same images
     sils = stages.run("silhouettes", silhouettes, session, images=images, threshold=threshold)
     poses = _refine_poses(session, cal, sils, mode=refine_poses, cameras=cameras, names=[session.relpath(v.image) for v in session.views])
-    cameras, stages.timings["poses"] = poses.cameras, poses.seconds
+    cameras = poses.cameras  # its time is in report["poses"]["seconds"]
     grid = VoxelGrid.from_session(session, voxel_size)
     occupancy, field = stages.run("carving", _carve, sils, cameras, grid, hull=hull, tolerance=tolerance)
     if not occupancy.any():
