@@ -6,7 +6,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..camera import Camera
 from . import _model
 from ._model import Model, Problem
 from ._tangents import outline_rays, pad_rays
