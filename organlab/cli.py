@@ -165,6 +165,9 @@ def _parser():
     r.add_argument("--max-memory", default=None, metavar="SIZE",
                    help="memory the voxel grid may take, e.g. 8G (default: the memory available now)")
     r.add_argument("--measure", action="store_true", help="AAA measurements in the report (default: when the session is an AAA)")
+    r.add_argument("--refine-poses", choices=["auto", "on", "off"], default="auto",
+                   help="correct the poses from the silhouettes (a bumped camera, a table that lost steps, a specimen that "
+                        "slid), kept only when views left out of the fit agree better; auto: when views disagree (default)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
     r.add_argument("--allow-outside-paths", action="store_true",
                    help="accept image paths in session.json that lead out of the session folder (.., absolute, symlinks)")
@@ -422,6 +425,7 @@ def _run_reconstruct(a, session, max_memory):
         max_memory=max_memory,
         finish=not a.raw_surface,
         measure=True if a.measure else None,
+        refine_poses=a.refine_poses,
     )
 
 

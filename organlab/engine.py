@@ -47,6 +47,7 @@ from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, check_grid_memory, check_image_memory
+from .poses import MODES as POSE_MODES, refine_poses
 from .progress import NullProgress
 from .session import Session, load_session, write_json
 from .silhouette import Silhouette, SilhouetteModel, silhouette
@@ -117,7 +118,7 @@ class Settings:
     finish: bool = True
     measure: bool | None = None
     roi: tuple | None = None
-    # (the poses helper adds  refine_poses: str = "auto"  here, and its stage in DEPENDS)
+    refine_poses: str = "auto"  # 'auto' | 'on' | 'off' (organlab.poses.refine_poses)
 
     def replace(self, **changes: Any) -> Settings:
         """A copy with some fields changed (validated)."""
@@ -167,6 +168,8 @@ class Settings:
             raise SettingsError("finish", f"must be True or False, got {self.finish!r}")
         if self.measure is not None and not isinstance(self.measure, (bool, np.bool_)):
             raise SettingsError("measure", f"must be True, False or None (when the session is an AAA), got {self.measure!r}")
+        if self.refine_poses not in POSE_MODES:
+            raise SettingsError("refine_poses", f"must be one of {POSE_MODES}, got {self.refine_poses!r}")
         if self.roi is not None:
             try:
                 lo, hi = (np.asarray(v, dtype=np.float64) for v in self.roi)
@@ -183,7 +186,7 @@ class Settings:
 DEPENDS: dict[str, tuple[str, ...]] = {
     "calibration": (),  # the Engine's calibration= / recalibrate= (fixed for an Engine)
     "silhouettes": ("threshold",),
-    # "poses": ("refine_poses",),  # pose refinement goes here: after the silhouettes, before carving
+    "poses": ("refine_poses",),  # the poses corrected from the silhouettes (organlab.poses), before carving
     "carving": ("voxel_size", "roi", "hull", "tolerance"),
     "coloring": ("method", "color_threshold"),
     "surface": ("finish", "measure"),
@@ -809,6 +812,14 @@ class Engine:
         bar.close()
         return sils
 
+    def _run_poses(self, settings, clock, out, notify):
+        """:func:`organlab.poses.refine_poses` on every view of a session (None for some views or no session)."""
+        cal = out["calibration"]
+        if self.session is None or len(self.views) != len(self.session.views):
+            return None  # the table angles and the gate need the whole turn
+        return refine_poses(self.session, cal.calibration, out["silhouettes"], mode=settings.refine_poses,
+                            cameras=cal.cameras, names=list(self.names))
+
     def _run_carving(self, settings, clock, out, notify):
         sils, cameras = out["silhouettes"], _cameras(out)
         grid = self.grid(settings)
@@ -889,12 +900,14 @@ class Engine:
         figures = AgreementFigures.from_agreement(agr, names)
         if s is None:  # views without a session: nothing of a session to report
             return ChecksStage(agr, figures, None)
-        timings = {k: self.timings[k] for k in STAGES if k in self.timings and k != "checks"}
+        timings = {k: self.timings[k] for k in STAGES if k in self.timings and k not in ("checks", "poses")}
         report = _report(s, self.views, grid, occupancy, surf.mesh, cameras, cal, cal_stage.how, sils, timings,
                          settings)
         report.update(surf.to_dict())
         if colored is not None:
             report["coloring"] = colored.info
+        if out.get("poses") is not None:
+            report["poses"] = out["poses"].to_dict()
         for row, a in zip(report["views"], agr.views):
             row["agreement"] = a
         report["agreement"] = {"limit": agr.limit, **figures.to_dict()}

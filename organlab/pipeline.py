@@ -7,6 +7,7 @@ and timings::
     cal, how = calibration_for(session)        # organlab.calibration
     cameras = cal.cameras(session)
     sils = silhouettes(session)                # organlab.silhouette
+    cameras = refine_poses(session, cal, sils, cameras=cameras).cameras  # organlab.poses
     grid = VoxelGrid.from_session(session, voxel_size=1.0)
     field = hull_field(sils, cameras, grid, sparse=True)  # organlab.carving
     mesh = mesh_from_field(field, grid)        # organlab.surface
@@ -66,6 +67,7 @@ def reconstruct(
     max_memory: int | None = None,
     finish: bool = True,
     measure: bool | None = None,
+    refine_poses: str = "auto",
 ) -> Reconstruction:
     """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
 
@@ -116,6 +118,9 @@ def reconstruct(
     measure : bool, optional
         AAA measurements (:func:`organlab.surface.measure_aaa`); default: when
         the session says its specimen is an AAA.
+    refine_poses : {'auto', 'on', 'off'}
+        Correct the poses from the silhouettes (:func:`organlab.poses.refine_poses`),
+        kept only when the leave-out gate accepts; ``'auto'``: when views disagree.
 
     Returns
     -------
@@ -137,7 +142,8 @@ def reconstruct(
     (True, 174000.0)
     """
     settings = Settings(voxel_size=voxel_size, threshold=threshold, method=method, hull=hull,
-                        color_threshold=color_threshold, tolerance=tolerance, finish=finish, measure=measure)
+                        color_threshold=color_threshold, tolerance=tolerance, finish=finish, measure=measure,
+                        refine_poses=refine_poses)
     settings.validate()  # before the session is read
     engine = Engine(session, calibration=calibration, recalibrate=recalibrate, max_memory=max_memory)
     return engine.run(settings, progress=progress)
@@ -190,6 +196,8 @@ def summary_table(report):
         a = report["aaa"]
         rows.append(("AAA max diameter", f"{a['max_diameter_mm']:.1f} mm at z {a['max_location_mm'][2]:.1f} mm, "
                      f"sac {a['sac_length_mm']:.0f} mm"))
+    if report.get("poses"):
+        rows.append(("poses", report["poses"]["reason"]))
     source = report.get("calibration", {}).get("source")
     if source:
         rows.append(("calibration", source))

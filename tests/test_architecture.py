@@ -21,8 +21,8 @@ PKG = ROOT / "organlab"
 FLOORS = {
     "ground": {"errors", "validate", "camera", "grid", "mesh", "bandfield", "masks", "raster", "nbcam", "session",
                "progress", "cliparser", "preflight"},
-    "stages": {"calibration", "capture", "silhouette", "carving", "coloring", "surface", "agreement", "checks",
-               "scaffold"},
+    "stages": {"calibration", "capture", "silhouette", "poses", "carving", "coloring", "surface", "agreement",
+               "checks", "scaffold"},
     "engine": {"engine", "pipeline"},
     "faces": {"cli", "__main__", "viewer", "widgets", "figures"},
 }
@@ -265,6 +265,7 @@ ANNOTATED = {
     "organlab.capture": set(),
     "organlab.coloring": set(),
     "organlab.surface": set(),
+    "organlab.poses": set(),
     "organlab.raster": set(),
     "organlab.masks": set(),
     "organlab.mesh": set(),

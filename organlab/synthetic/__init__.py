@@ -19,6 +19,13 @@ Scene (world frame = turntable frame, mm, Z up along the table axis):
   (:class:`AAAPhantom`, :class:`GroovedSpecimen`, :class:`DentedSpecimen`,
   :class:`Sphere`, :class:`Cylinder`) standing on the plate.
 
+What went wrong at the rig can be simulated (``make_session``): the true table
+angles (a table that lost steps, a mislabelled view: ``true_angles_deg``), a camera
+bumped after the board images (``camera_bump``), a specimen that slid on the plate
+from a view on (``slip``, :class:`Moved`); ``truth.json`` then holds the true poses.
+``AAAPhantom(shape_seed=N)`` (``make_specimen("aaa-N")``) is another AAA of the
+sample's family.
+
 ``python -m organlab.synthetic OUT --seed 0`` writes a complete session
 folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
 
@@ -45,6 +52,7 @@ __all__ = [
     "AAAPhantom",
     "GroovedSpecimen",
     "DentedSpecimen",
+    "Moved",
     "striped_albedo",
     "make_specimen",
     "render_view",
@@ -81,6 +89,7 @@ from ._specimens import (
     Cylinder,
     DentedSpecimen,
     GroovedSpecimen,
+    Moved,
     Specimen,
     Sphere,
     make_specimen,

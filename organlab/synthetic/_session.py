@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera import rot_z
 from ..session import DEFAULT_PATTERN, DEFAULT_ROI, FORMAT, save_session, write_json
 from . import _hard, _render
 from ._boards import BOARD_MARGIN, default_camera, intrinsic_board_poses, render_board, turntable_board_pose
-from ._specimens import make_specimen
+from ._specimens import Moved, make_specimen
 
 def _write_image(path, image, *, fmt="png", quality=95, chroma="444"):
     """Write a PNG, or a JPEG with full (``'444'``) or 2 x 2 subsampled (``'420'``, most cameras) chroma."""
@@ -77,6 +78,9 @@ def make_session(
     roi=None,
     name=None,
     hard=False,
+    true_angles_deg=None,
+    camera_bump=None,
+    slip=None,
 ):
     """Write a complete synthetic session folder (``organlab.session/1``) and its ``truth.json``.
 
@@ -117,6 +121,21 @@ def make_session(
         a per-view exposure gain within +-10 %; views and frames are written as
         JPEG (quality at most 90, chroma subsampled 4:2:0 as most cameras
         write it) over the pixel noise.
+    true_angles_deg : sequence of float, optional
+        The table angle each view was really taken at (a table that lost
+        steps, a mislabelled view); ``session.json`` keeps the commanded
+        ``360 * i / n_views``.  ``truth.json`` has both.
+    camera_bump : dict, optional
+        The camera bumped after the board images, before the background
+        frames and the views: ``{"rotation_deg": (3,), "translation_mm": (3,)}``,
+        a rotation vector in the camera frame (degrees) about the camera's
+        centre, and the centre's move, world frame, mm.
+    slip : dict, optional
+        The specimen slid on the plate from a view on:
+        ``{"view": k, "translation_mm": (dx, dy), "rotation_deg": psi}``;
+        views ``k, k+1, ...`` see it at ``Rz(psi) X + (dx, dy, 0)``.  The
+        truth's view poses are in the specimen's frame of the first views
+        (the cameras that see the unmoved specimen at the same place).
 
     Returns
     -------
@@ -134,6 +153,8 @@ def make_session(
     spec = make_specimen(specimen)
     pattern = DEFAULT_PATTERN
     cam = default_camera(image_size)
+    commanded = [float(360.0 * i / n_views) for i in range(int(n_views))]
+    perturb = _Perturbation(commanded, true_angles_deg, camera_bump, slip)
     out.mkdir(parents=True, exist_ok=True)
     _remove_previous_images(out)
     noise = _Noise(seed, noise_sigma)
@@ -144,8 +165,10 @@ def make_session(
         view_format = background_format = "jpg"
         jpeg_quality = min(int(jpeg_quality), 90)
     image_kw = dict(supersample=int(supersample), quality=jpeg_quality, hard=hard, chroma="420" if hard else "444")
-    background = _write_background_frames(out, cam, n_background, noise, fmt=background_format, **image_kw)
-    views, views_truth = _write_views(out, cam, spec, n_views, noise, include_poses, fmt=view_format, **image_kw)
+    cam_views = perturb.camera(cam)  # after the board images
+    background = _write_background_frames(out, cam_views, n_background, noise, fmt=background_format, **image_kw)
+    views, views_truth = _write_views(out, cam_views, spec, n_views, noise, include_poses, fmt=view_format, perturb=perturb,
+                                      camera_nominal=cam, **image_kw)
     roi = DEFAULT_ROI if roi is None else roi
     session = {
         "format": FORMAT,
@@ -166,6 +189,10 @@ def make_session(
         session["backdrop"] = {"color": "frames", "shadows": True}
     truth = _truth(cam, spec, views_truth, pattern, poses_in, seed=seed, noise_sigma=noise_sigma, supersample=supersample,
                    board_supersample=board_supersample, formats=(view_format, background_format, jpeg_quality))
+    if perturb.any:
+        truth["perturbation"] = perturb.to_dict()
+        truth["perturbation"]["camera_views"] = {"R_cam": cam_views.R.tolist(), "t_cam": cam_views.t.tolist(),
+                                                 "center": cam_views.center.tolist()}
     if hard:
         truth["hard"] = {"exposure_gains": [v["exposure_gain"] for v in views_truth], "jpeg_chroma": "4:2:0"}
     save_session(out, session)
@@ -242,24 +269,99 @@ def _write_background_frames(out, cam, n, noise, *, supersample, fmt, quality, h
     return names
 
 
-def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, fmt, quality, hard=False, chroma="444"):
+class _Perturbation:
+    """What went wrong at the simulated rig (none by default): true angles, a bumped camera, a slip."""
+
+    def __init__(self, commanded, true_angles_deg, camera_bump, slip):
+        n = len(commanded)
+        self.commanded = commanded
+        if true_angles_deg is None:
+            self.angles = list(commanded)
+        else:
+            a = np.asarray(true_angles_deg, dtype=np.float64).ravel()
+            if a.shape != (n,) or not np.all(np.isfinite(a)):
+                raise ValueError(f"true_angles_deg must hold {n} finite angles (one per view), got shape {a.shape}")
+            self.angles = [float(x) for x in a]
+        self.bump = None
+        if camera_bump is not None:
+            rot = np.asarray(camera_bump.get("rotation_deg", (0, 0, 0)), np.float64)
+            tr = np.asarray(camera_bump.get("translation_mm", (0, 0, 0)), np.float64)
+            if rot.shape != (3,) or tr.shape != (3,):
+                raise ValueError("camera_bump needs rotation_deg (3,) and translation_mm (3,)")
+            self.bump = (rot, tr)
+        self.slip = None
+        if slip is not None:
+            k = int(slip["view"])
+            if not 0 < k < n:
+                raise ValueError(f"slip['view'] must be a view index in 1..{n - 1}, got {k}")
+            tr = np.asarray(slip.get("translation_mm", (0, 0)), np.float64)
+            if tr.shape != (2,):
+                raise ValueError("slip['translation_mm'] must be (dx, dy), mm")
+            self.slip = (k, tr, float(slip.get("rotation_deg", 0.0)))
+        self.any = true_angles_deg is not None or self.bump is not None or self.slip is not None
+
+    def camera(self, cam):
+        """The camera after the board images (bumped or not)."""
+        if self.bump is None:
+            return cam
+        import cv2
+
+        rot, tr = self.bump
+        Rb = cv2.Rodrigues(np.deg2rad(rot).reshape(3, 1))[0]
+        R = Rb @ cam.R
+        c = cam.center + tr
+        return cam.with_pose(R, -R @ c)
+
+    def specimen(self, spec, i):
+        if self.slip is None or i < self.slip[0]:
+            return spec
+        return Moved(spec, self.slip[1], self.slip[2])
+
+    def true_camera(self, cam, i):
+        """The camera of view ``i`` in the frame of the unmoved specimen."""
+        c = cam.at_table_angle(self.angles[i])
+        if self.slip is None or i < self.slip[0]:
+            return c
+        Rs, s = rot_z(self.slip[2]), np.array([*self.slip[1], 0.0])
+        # x_cam = R (Rs X + s) + t
+        return c.with_pose(c.R @ Rs, c.R @ s + c.t)
+
+    def to_dict(self):
+        d = {"commanded_angles_deg": list(self.commanded), "true_angles_deg": list(self.angles)}
+        if self.bump is not None:
+            d["camera_bump"] = {"rotation_deg": self.bump[0].tolist(), "translation_mm": self.bump[1].tolist()}
+        if self.slip is not None:
+            d["slip"] = {"view": self.slip[0], "translation_mm": self.slip[1].tolist(), "rotation_deg": self.slip[2]}
+        return d
+
+
+def _write_views(out, cam, spec, n_views, noise, include_poses, *, supersample, fmt, quality, hard=False, chroma="444",
+                 perturb=None, camera_nominal=None):
     """Views of the specimen every ``360 / n_views`` degrees; returns the session's and the truth's view entries."""
     views, views_truth = [], []
+    if perturb is None:
+        perturb = _Perturbation([float(360.0 * i / n_views) for i in range(int(n_views))], None, None, None)
+    nominal = cam if camera_nominal is None else camera_nominal
     for i in range(int(n_views)):
-        a = float(360.0 * i / n_views)
-        cam_a = cam.at_table_angle(a)
+        a = perturb.commanded[i]
+        cam_a = cam.at_table_angle(perturb.angles[i])
+        spec_i = perturb.specimen(spec, i)
         if hard:
             gain = _hard.exposure_gain(np.random.default_rng([noise.seed, 5, i]))
-            img = gain * _hard.render_hard(cam_a, supersample=supersample, specimen=spec)
+            img = gain * _hard.render_hard(cam_a, supersample=supersample, specimen=spec_i)
         else:
-            img = _render.render(cam_a, supersample=supersample, specimen=spec)
+            img = _render.render(cam_a, supersample=supersample, specimen=spec_i)
         rel = f"views/{int(round(a * 10)):04d}.{fmt}" if a != int(a) else f"views/{int(a):03d}.{fmt}"
         _write_image(out / rel, noise(img, 4, i), fmt=fmt, quality=quality, chroma=chroma)
         entry = {"image": rel, "angle_deg": a}
-        if include_poses:
-            entry["pose"] = {"R": cam_a.R.tolist(), "t": cam_a.t.tolist()}
+        if include_poses:  # what the rig believes: the board-calibrated camera at the commanded angle
+            cam_n = nominal.at_table_angle(a)
+            entry["pose"] = {"R": cam_n.R.tolist(), "t": cam_n.t.tolist()}
         views.append(entry)
-        views_truth.append({"angle_deg": a, "R": cam_a.R.tolist(), "t": cam_a.t.tolist()})
+        true_cam = perturb.true_camera(cam, i)
+        views_truth.append({"angle_deg": a, "R": true_cam.R.tolist(), "t": true_cam.t.tolist()})
+        if perturb.any:
+            views_truth[-1]["true_angle_deg"] = perturb.angles[i]
         if hard:
             views_truth[-1]["exposure_gain"] = float(gain)
     return views, views_truth

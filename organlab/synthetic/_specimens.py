@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import as_points
+from ..camera import as_points, rot_z
 
 from . import _render
 
@@ -335,17 +335,24 @@ class AAAPhantom(_Union):
     exact), plus ``2 pi rho^2 z_b / cos(theta)`` for the legs.
     """
 
-    def __init__(self, *, name="aaa"):
+    def __init__(self, *, name="aaa", shape_seed=None):
         z_b, z_top = 32.0, 172.0
         r_aorta = 12.6
+        # shape_seed=None: the sample's phantom; an int: another AAA of the same family
+        # (sac size, extent, asymmetry, bleb and ovality drawn within the family's ranges)
+        g = None if shape_seed is None else np.random.default_rng([int(shape_seed), 2020])
+        def u(default, lo, hi):
+            return default if g is None else float(g.uniform(lo, hi))
+        sac_lo, sac_hi = u(42.0, 38.0, 52.0), u(158.0, 140.0, 162.0)
+        bleb_z = u(70.0, 55.0, 95.0)
         terms = [
             [r_aorta, 0, 0, 0, 0, 0, 0],
             [1.6, 2, z_b, z_b + 22.0, 0, 0, 0],  # flare toward the bifurcation
             [-0.8, 1, z_b + 90.0, z_top + 60.0, 0, 0, 0],  # gentle taper toward the top
-            [13.4, 1, 42.0, 158.0, 0, 0, 0],  # fusiform aneurysm
-            [2.4, 1, 42.0, 158.0, 1, 1, 0.6],  # anterior asymmetry
-            [2.0, 1, 70.0, 130.0, 2, 3.0, 0.9],  # a bleb, left-anterior
-            [0.5, 1, 42.0, 158.0, 1, 2, 0.3],  # slight ovality
+            [u(13.4, 10.0, 15.0), 1, sac_lo, sac_hi, 0, 0, 0],  # fusiform aneurysm
+            [u(2.4, 1.5, 4.0), 1, sac_lo, sac_hi, 1, 1, u(0.6, -np.pi, np.pi)],  # asymmetry
+            [u(2.0, 1.5, 3.5), 1, bleb_z, bleb_z + 60.0, 2, 3.0, u(0.9, -np.pi, np.pi)],  # a bleb
+            [u(0.5, 0.3, 1.5), 1, sac_lo, sac_hi, 1, 2, u(0.3, -np.pi, np.pi)],  # ovality
         ]
         star = _StarSolid(np.array(terms, dtype=np.float64), z_b, z_top)
         r_b = float(star.radius(np.linspace(0, 2 * np.pi, 721), np.full(721, z_b)).min())
@@ -452,14 +459,53 @@ class DentedSpecimen(_Union):
         return striped_albedo(points)
 
 
+class Moved(Specimen):
+    """A specimen moved rigidly on the plate: ``X' = Rz(rotation_deg) @ X + (dx, dy, 0)``.
+
+    Parameters
+    ----------
+    specimen : Specimen
+    translation_mm : (2,) float
+        ``(dx, dy)``, world frame, mm.
+    rotation_deg : float
+        About the table axis (+Z), degrees.
+    """
+
+    def __init__(self, specimen, translation_mm=(0.0, 0.0), rotation_deg=0.0):
+        self.inner = specimen
+        self.R = rot_z(rotation_deg)
+        self.s = np.array([float(translation_mm[0]), float(translation_mm[1]), 0.0])
+        self.volume = specimen.volume
+        self.name = specimen.name
+        self.texture_seed = getattr(specimen, "texture_seed", 0)
+        lo, hi = (np.asarray(b, np.float64) for b in specimen.bounds)
+        r = float(np.max(np.abs(np.concatenate([lo[:2], hi[:2]])))) * np.sqrt(2.0) + float(np.abs(self.s).max())
+        self.bounds = (np.array([-r, -r, lo[2]]), np.array([r, r, hi[2]]))
+
+    def _to_inner(self, p):
+        return (p - self.s) @ self.R  # R.T @ (p - s) row-wise
+
+    def _inside(self, p):
+        return self.inner._inside(self._to_inner(p))
+
+    def _intersect(self, o, d, t_max=None):
+        t, nrm = self.inner._intersect(np.ascontiguousarray(self._to_inner(o)), np.ascontiguousarray(d @ self.R), t_max)
+        return t, nrm @ self.R.T
+
+    def albedo(self, points):
+        return self.inner.albedo(self._to_inner(np.asarray(points, np.float64)))
+
+
 def make_specimen(name):
-    """The specimen called ``name``: ``"aaa"`` (:class:`AAAPhantom`), ``"grooved"`` (:class:`GroovedSpecimen`) or ``"dented"`` (:class:`DentedSpecimen`)."""
+    """The specimen called ``name``: ``"aaa"`` (:class:`AAAPhantom`), ``"aaa-N"`` (another AAA of the family, shape seed N), ``"grooved"`` (:class:`GroovedSpecimen`) or ``"dented"`` (:class:`DentedSpecimen`)."""
     if isinstance(name, Specimen):
         return name
     if name == "aaa":
         return AAAPhantom()
+    if isinstance(name, str) and name.startswith("aaa-") and name[4:].isdigit():
+        return AAAPhantom(name=name, shape_seed=int(name[4:]))
     if name == "grooved":
         return GroovedSpecimen()
     if name == "dented":
         return DentedSpecimen()
-    raise ValueError(f"unknown specimen {name!r}; choose 'aaa', 'grooved' or 'dented'")
+    raise ValueError(f"unknown specimen {name!r}; choose 'aaa', 'aaa-N' (N an integer), 'grooved' or 'dented'")

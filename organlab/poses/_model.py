@@ -1,0 +1,316 @@
+"""The pose model refined from the silhouettes, and its least-squares fit.
+
+Turntable model (views posed by the turntable calibration)::
+
+    R_i = Exp(w) R_cam Rz(a_i + d_i) [Rz(psi)]      t_i = Exp(w) t_cam + tau [+ R_i' s]
+
+``w`` (3, rad, camera frame: a rotation about the camera's centre) and ``tau``
+(3, mm, camera frame: a move of the centre) are shared by every view; ``d_i``
+(degrees) is view ``i``'s table-angle correction (``d_0 = 0``: the first view
+fixes the specimen's orientation on the plate, which silhouettes cannot see);
+for views from a slip on, the specimen has moved on the plate by ``Rz(psi)``
+and ``s = (sx, sy, 0)`` (bracketed terms; ``R_i'`` is ``R_i`` without
+``Rz(psi)``).
+
+Posed model (views whose poses were given, e.g. published cameras): each view
+is turned about the axis of the ring its camera centres lie on by ``d_i``.
+
+Priors (residuals in units of their standard deviation): ``d_i`` near 0
+(:data:`SIGMA_ANGLE_DEG`), their second differences near 0 (smooth drift,
+:data:`SIGMA_SMOOTH_DEG`), the shared pose near the board calibration's
+(:data:`SIGMA_ROTATION_DEG`, :data:`SIGMA_TRANSLATION_MM`): the last also pins
+what silhouettes cannot see (the camera's move along the table axis and toward
+it: both only move or scale the model).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera, rot_z
+from ._tangents import MAX_HALF_ANGLE_DEG, pair_angles
+
+SIGMA_ANGLE_DEG = 3.0
+SIGMA_SMOOTH_DEG = 0.1
+SIGMA_ROTATION_DEG = 1.0
+#: About the camera's X axis (its tilt toward the table): the silhouettes of a specimen
+#: near symmetric about the axis pin it least (it trades with the model's height and shape).
+SIGMA_PITCH_DEG = 0.25
+#: Weight of the tangents that touch a silhouette's foot on the plate (the least reliable outline).
+FOOT_WEIGHT = 0.0
+SIGMA_TRANSLATION_MM = 2.0
+SIGMA_SLIP_MM = 5.0
+SIGMA_SLIP_DEG = 5.0
+#: Tangent residuals are divided by this (px): their noise on clean renders.
+SIGMA_PX = 0.25
+#: soft-L1 scale, in SIGMA_PX: a pair a moved view spoils weighs little.
+F_SCALE = 3.0
+
+
+def _rotvecs(w):
+    """(n, 3) rotation vectors (rad) to (n, 3, 3) matrices."""
+    w = np.atleast_2d(w)
+    th = np.linalg.norm(w, axis=1)
+    k = w / np.where(th < 1e-15, 1.0, th)[:, None]
+    Kx = np.zeros((len(w), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+
+
+def _rz_stack(deg):
+    a = np.deg2rad(np.asarray(deg, np.float64))
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros((len(a), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def _axis_rot(axis, deg):
+    """(n, 3, 3) rotations about a unit axis by angles in degrees."""
+    return _rotvecs(np.outer(np.deg2rad(np.asarray(deg, np.float64)), axis))
+
+
+@dataclass
+class Model:
+    """Parameter layout and the cameras it gives.
+
+    ``kind`` is ``'turntable'`` (``base`` = the camera at table angle 0,
+    ``angles`` the views' table angles) or ``'posed'`` (``posed`` = the given
+    cameras, ``axis``/``axis_point`` the ring's axis).
+    """
+
+    kind: str
+    n: int
+    angles: np.ndarray
+    base: Camera | None = None
+    posed: list | None = None
+    axis: np.ndarray | None = None
+    axis_point: np.ndarray | None = None
+    slip_view: int | None = None
+    shared: bool = True
+    angles_free: bool = True
+
+    @property
+    def n_shared(self):
+        return 6 if (self.kind == "turntable" and self.shared) else 0
+
+    @property
+    def n_params(self):
+        return self.n_shared + (self.n - 1) + (3 if self.slip_view is not None else 0)
+
+    def split(self, x):
+        """``(w, tau, d (n,), slip (3,) or None)``."""
+        ns = self.n_shared
+        w = x[:3] if ns else np.zeros(3)
+        tau = x[3:6] if ns else np.zeros(3)
+        d = np.concatenate([[0.0], x[ns : ns + self.n - 1]])
+        slip = x[ns + self.n - 1 :] if self.slip_view is not None else None
+        return w, tau, d, slip
+
+    def poses(self, x):
+        """``R (n, 3, 3)``, ``t (n, 3)`` of every view under parameters ``x``."""
+        w, tau, d, slip = self.split(x)
+        if self.kind == "turntable":
+            Rw = _rotvecs(w[None])[0]
+            Rc = Rw @ self.base.R
+            tc = Rw @ self.base.t + tau
+            R = Rc[None] @ _rz_stack(self.angles + d)
+            t = np.broadcast_to(tc, (self.n, 3)).copy()
+        else:
+            Q = _axis_rot(self.axis, d)
+            c = self.axis_point
+            R0 = np.stack([cam.R for cam in self.posed])
+            t0 = np.stack([cam.t for cam in self.posed])
+            R = R0 @ Q
+            t = np.einsum("nab,nb->na", R0, c - np.einsum("nab,b->na", Q, c)) + t0
+        if slip is not None:
+            k = self.slip_view
+            Rs = rot_z(slip[2])
+            s = np.array([slip[0], slip[1], 0.0])
+            t[k:] = np.einsum("nab,b->na", R[k:], s) + t[k:]
+            R[k:] = R[k:] @ Rs
+        return R, t
+
+    def cameras(self, x, template):
+        R, t = self.poses(x)
+        return [template.with_pose(R[i], t[i]) for i in range(self.n)]
+
+    def prior(self, x):
+        """Prior residuals (units of their sigma)."""
+        w, tau, d, slip = self.split(x)
+        out = [d[1:] / (SIGMA_ANGLE_DEG if self.angles_free else 1e-4)]
+        if self.kind == "turntable" and self.n >= 3:
+            dd = d[2:] - 2 * d[1:-1] + d[:-2]
+            out.append(dd / SIGMA_SMOOTH_DEG)
+        if self.n_shared:
+            out.append(np.rad2deg(w) / np.array([SIGMA_PITCH_DEG, SIGMA_ROTATION_DEG, SIGMA_ROTATION_DEG]))
+            out.append(tau / SIGMA_TRANSLATION_MM)
+        if slip is not None:
+            out.append(slip[:2] / SIGMA_SLIP_MM)
+            out.append(slip[2:] / SIGMA_SLIP_DEG)
+        return np.concatenate(out)
+
+
+class Problem:
+    """Tangent residuals of every usable pair under a :class:`Model`."""
+
+    def __init__(self, model, rays_cam, centroid_cam, f_px, *, pairs=None, x0=None, low=None):
+        self.model = model
+        self.rays_cam = rays_cam  # (n, M, 3)
+        self.centroid_cam = centroid_cam  # (n, 3)
+        self.f = float(f_px)
+        x0 = np.zeros(model.n_params) if x0 is None else x0
+        if pairs is None:
+            pairs = self._usable_pairs(x0)
+        self.I, self.J = pairs
+        self.scale = self._scale(x0)
+        # tangents that touch a silhouette's foot (where it meets the plate: shadows, the least
+        # reliable outline) are left out, decided once at the starting poses
+        self.keep = np.ones((len(self.I), 2))
+        if low is not None:
+            rays_w, C, cen_w = self._geometry(x0)
+            _, _, _, idx = pair_angles(rays_w, C, cen_w, self.I, self.J, return_index=True)
+            li, lj = low[self.I], low[self.J]
+            P = np.arange(len(self.I))
+            for side in (0, 1):
+                bad = li[P, idx[:, side]] | lj[P, idx[:, 2 + side]]
+                self.keep[bad, side] = FOOT_WEIGHT
+        self.by_view = [np.nonzero((self.I == v) | (self.J == v))[0] for v in range(model.n)]
+
+    def _geometry(self, x):
+        R, t = self.model.poses(x)
+        C = -np.einsum("nba,nb->na", R, t)
+        rays_w = np.einsum("nmk,nkl->nml", self.rays_cam, R)
+        cen_w = np.einsum("nk,nkl->nl", self.centroid_cam, R)
+        return rays_w, C, cen_w
+
+    def _usable_pairs(self, x):
+        n = self.model.n
+        I, J = np.triu_indices(n, 1)
+        rays_w, C, cen_w = self._geometry(x)
+        psi, si, sj = pair_angles(rays_w, C, cen_w, I, J)
+        lim = np.deg2rad(MAX_HALF_ANGLE_DEG)
+        ok = (np.abs(psi).max(axis=1) < lim) & (si > 0.2) & (sj > 0.2)
+        ok &= np.linalg.norm(C[J] - C[I], axis=1) > 1e-3 * np.linalg.norm(C, axis=1).mean()
+        return I[ok], J[ok]
+
+    def _scale(self, x):
+        rays_w, C, cen_w = self._geometry(x)
+        _, si, sj = pair_angles(rays_w, C, cen_w, self.I, self.J)
+        return self.f * 0.5 * (si + sj)
+
+    def pair_residuals(self, x, sel=None):
+        """``(P, 2)`` px: the extremal planes of view ``i`` minus view ``j``'s."""
+        I, J = (self.I, self.J) if sel is None else (self.I[sel], self.J[sel])
+        rays_w, C, cen_w = self._geometry(x)
+        psi, _, _ = pair_angles(rays_w, C, cen_w, I, J)
+        sc = self.scale if sel is None else self.scale[sel]
+        kp = self.keep if sel is None else self.keep[sel]
+        return (psi[:, :2] - psi[:, 2:]) * sc[:, None] * kp
+
+    def residuals(self, x, weights=None):
+        r = self.pair_residuals(x)
+        if weights is not None:
+            r = r * weights[:, None]
+        return np.concatenate([r.ravel() / SIGMA_PX, self.model.prior(x)])
+
+    def jacobian(self, x, weights=None):
+        """Forward differences; an angle moves only its own view's pairs."""
+        m = self.model
+        r0p = self.pair_residuals(x)
+        p0 = m.prior(x)
+        P = len(self.I)
+        J = np.zeros((2 * P + len(p0), m.n_params))
+        wv = np.ones(P) if weights is None else weights
+        ns = m.n_shared
+        for k in range(m.n_params):
+            h = 1e-6 if (ns and k < 3) else 1e-4  # rad for the camera's rotation, mm or degrees otherwise
+            xk = x.copy()
+            xk[k] += h
+            if ns <= k < ns + m.n - 1:
+                v = k - ns + 1
+                sel = self.by_view[v]
+                d = (self.pair_residuals(xk, sel) - r0p[sel]) / h
+                J[2 * sel, k] = d[:, 0] * wv[sel] / SIGMA_PX
+                J[2 * sel + 1, k] = d[:, 1] * wv[sel] / SIGMA_PX
+            else:
+                d = (self.pair_residuals(xk) - r0p) / h
+                J[: 2 * P, k] = (d * wv[:, None]).ravel() / SIGMA_PX
+            J[2 * P :, k] = (m.prior(xk) - p0) / h
+        return J
+
+    def fit(self, x0, *, weights=None, max_iter=30):
+        """Robust Levenberg-Marquardt (soft-L1, :data:`F_SCALE`), deterministic; returns ``(x, info)``."""
+        return robust_lm(lambda x: self.residuals(x, weights), lambda x: self.jacobian(x, weights), x0, max_iter=max_iter)
+
+    def view_rms(self, x, views=None, partners=None):
+        """Per-view RMS (px) of the residuals of its pairs (with ``partners`` only, when given)."""
+        r = self.pair_residuals(x)
+        out = np.full(self.model.n, np.nan)
+        for v in range(self.model.n) if views is None else views:
+            sel = self.by_view[v]
+            if partners is not None:
+                other = np.where(self.I[sel] == v, self.J[sel], self.I[sel])
+                sel = sel[np.isin(other, partners)]
+            if len(sel):
+                out[v] = float(np.sqrt(np.mean(r[sel] ** 2)))
+        return out
+
+
+def _soft_l1(r, f):
+    z = (r / f) ** 2
+    return 2 * f * f * (np.sqrt(1 + z) - 1), 1 / np.sqrt(1 + z)
+
+
+def cost(r, f_scale=F_SCALE):
+    """The soft-L1 cost ``sum rho(r)`` of residuals (units of their sigma)."""
+    return float(_soft_l1(np.asarray(r, np.float64), f_scale)[0].sum())
+
+
+def robust_lm(fun, jac, x0, *, f_scale=F_SCALE, max_iter=30, tol=1e-6):
+    """Levenberg-Marquardt on a soft-L1 loss by iteratively reweighted normal equations.
+
+    Small problems (tens of parameters): the normal equations are solved
+    directly, no SVD of the Jacobian (``scipy.optimize.least_squares`` spends
+    most of its time there here).  Returns ``(x, info)`` with ``cost``
+    (``sum rho``), ``iterations``, ``converged``.
+    """
+    x = np.array(x0, dtype=np.float64)
+    r = fun(x)
+    rho, wt = _soft_l1(r, f_scale)
+    cost = float(rho.sum())
+    lam = 1e-3
+    it = 0
+    converged = False
+    for it in range(1, max_iter + 1):
+        J = jac(x)
+        A = J.T @ (J * wt[:, None])
+        g = J.T @ (wt * r)
+        D = np.diag(A).copy()
+        D[D <= 0] = 1e-12
+        improved = False
+        for _ in range(12):
+            try:
+                dx = np.linalg.solve(A + lam * np.diag(D), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            xn = x + dx
+            rn = fun(xn)
+            rhon, wtn = _soft_l1(rn, f_scale)
+            cn = float(rhon.sum())
+            if cn < cost:
+                small = cost - cn < tol * max(cost, 1e-12) or float(np.sqrt(np.sum(dx * dx * D))) < tol
+                x, r, wt, cost = xn, rn, wtn, cn
+                lam = max(lam / 3, 1e-9)
+                improved = True
+                break
+            lam *= 4
+        if not improved or small:
+            converged = True
+            break
+    return x, {"cost": cost, "iterations": it, "converged": converged}

@@ -1,0 +1,353 @@
+"""refine_poses: the turntable poses corrected from the silhouettes, behind a leave-out gate."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..camera import Camera
+from ..masks import Silhouette, as_arrays
+from ..session import Session
+from . import _model
+from ._model import Model, Problem
+from ._tangents import outline_rays, pad_rays
+
+MODES = ("auto", "on", "off")
+
+#: A view whose tangent residuals (RMS over its pairs, px) exceed this is flagged
+#: ('auto' refines when any is).  Measured on correct renders at 320 x 240
+#: (aaa-7, dented: largest view 0.23, 0.19 px; a slip 0.53, a bump 3.3) and 640 x 480 (docs/trust.md).
+FLAG_PX = 0.3
+#: Outline points this close to a silhouette's lowest row (px) are its foot on the plate.
+FOOT_PX = 4.0
+#: Folds of the leave-out gate: views ``i % GATE_FOLDS == f`` are left out of fit ``f``.
+GATE_FOLDS = 3
+#: The gate accepts when the left-out views' median RMS falls below this fraction of its value before ...
+GATE_RATIO = 0.8
+#: ... and by at least this much, px.
+GATE_MIN_PX = 0.05
+#: A slip is kept when the fit with it lowers the robust cost below this fraction of the fit without.
+SLIP_GAIN = 0.6
+#: ... and when the specimen moved at least this far on the plate, mm (a turn alone is a step
+#: in the angles: measured on a drifting table, a 'slip' of 0.02 mm and 1 degree at the middle view).
+SLIP_MIN_MM = 0.25
+
+
+@dataclass
+class PoseRefinement:
+    """What :func:`refine_poses` did.
+
+    Attributes
+    ----------
+    cameras : list of Camera
+        The cameras to carve with: refined when ``accepted``, else the input ones.
+    accepted : bool
+    mode : str
+    reason : str
+        One line: why it was applied, skipped or refused.
+    model : str
+        ``'turntable'`` or ``'posed'`` (or ``''`` when not run).
+    before_px, after_px : (n,) float
+        Per-view RMS of the tangent residuals, px, before and after (``after`` = before when not run).
+    angle_corrections_deg : (n,) float
+        Per-view table-angle (or ring-angle) correction, degrees (zeros when not accepted).
+    camera_rotation_deg : float
+    camera_center_shift_mm : (3,) float
+        Change of the shared camera pose (turntable model), world frame.
+    slip : dict or None
+        ``{"view": k, "translation_mm": [dx, dy], "rotation_deg": psi}`` when a slip was found.
+    gate : dict
+        Left-out views' median RMS before/after, px, per fold and overall.
+    flagged : list of int
+        Views over :data:`FLAG_PX` before.
+    """
+
+    cameras: list
+    accepted: bool
+    mode: str
+    reason: str
+    model: str = ""
+    before_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    after_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    angle_corrections_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    camera_rotation_deg: float = 0.0
+    camera_center_shift_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    slip: dict | None = None
+    gate: dict = field(default_factory=dict)
+    flagged: list = field(default_factory=list)
+    names: list | None = None
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        """JSON-ready (the ``poses`` entry of ``report.json``)."""
+        d = {
+            "mode": self.mode,
+            "accepted": bool(self.accepted),
+            "reason": self.reason,
+            "model": self.model,
+            "flag_px": FLAG_PX,
+            "flagged_views": [self._name(i) for i in self.flagged],
+            "seconds": round(float(self.seconds), 3),
+        }
+        if len(self.before_px):
+            d["tangent_rms_px"] = {"before_median": _f(np.nanmedian(self.before_px)), "before_max": _f(np.nanmax(self.before_px)),
+                                   "after_median": _f(np.nanmedian(self.after_px)), "after_max": _f(np.nanmax(self.after_px))}
+            d["views"] = [
+                {"view": self._name(i), "before_px": _f(b), "after_px": _f(a), "angle_correction_deg": _f(c)}
+                for i, (b, a, c) in enumerate(zip(self.before_px, self.after_px, self.angle_corrections_deg))
+            ]
+            d["camera_rotation_deg"] = _f(self.camera_rotation_deg)
+            d["camera_center_shift_mm"] = [_f(v) for v in self.camera_center_shift_mm]
+        if self.slip is not None:
+            d["slip"] = {**self.slip, "view": self._name(self.slip["view"])}
+        if self.gate:
+            d["gate"] = self.gate
+        return d
+
+    def _name(self, i):
+        return self.names[i] if self.names else int(i)
+
+
+def _f(v):
+    return None if v is None or not np.isfinite(v) else round(float(v), 4)
+
+
+def refine_poses(session: Session | None, calibration: Calibration | None, silhouettes: Sequence[Silhouette | np.ndarray],
+                 *, mode: str = "auto", cameras: Sequence[Camera] | None = None,
+                 names: Sequence[str] | None = None) -> PoseRefinement:
+    """Correct the views' poses so that every silhouette agrees with the others.
+
+    Parameters
+    ----------
+    session : organlab.session.Session or None
+        Its views' table angles (and given poses) are used; ``None``: the
+        ``cameras`` are given poses (e.g. published ones) on a ring.
+    calibration : organlab.calibration.Calibration or None
+        The board-based calibration (intrinsics and, for views without a
+        given pose, the turntable: the camera at table angle 0).
+    silhouettes : sequence of Silhouette or (H, W) arrays
+        One per view (coverage in ``[0, 1]``, or masks).
+    mode : {'auto', 'on', 'off'}
+        ``'auto'``: refine only when a view's tangent residuals exceed
+        :data:`FLAG_PX`; ``'on'``: always try; ``'off'``: never.  In both
+        first cases the result is used only when the leave-out gate accepts it.
+    cameras : list of Camera, optional
+        The views' cameras before refinement (default ``calibration.cameras(session)``).
+    names : list of str, optional
+        View names for the report.
+
+    Returns
+    -------
+    PoseRefinement
+        ``.cameras`` are the ones to carve with.
+
+    Examples
+    --------
+    >>> from organlab.poses import refine_poses
+    >>> refine_poses(None, None, [], mode="off").reason
+    'off (--refine-poses off)'
+    """
+    import time
+
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    t_start = time.perf_counter()
+    if mode == "off":
+        return PoseRefinement(cameras=list(cameras) if cameras is not None else [], accepted=False, mode=mode,
+                              reason="off (--refine-poses off)")
+    if cameras is None:
+        if calibration is None or session is None:
+            raise ValueError("give cameras, or a session and its calibration")
+        cameras = calibration.cameras(session)
+    cameras = list(cameras)
+    covs = as_arrays(list(silhouettes), "coverage")
+    if len(covs) != len(cameras):
+        raise ValueError(f"got {len(covs)} silhouettes but {len(cameras)} cameras: give one silhouette per view")
+    done = _refine(session, calibration, covs, cameras, mode, names)
+    done.seconds = time.perf_counter() - t_start
+    return done
+
+
+def _build_model(session, calibration, cameras):
+    n = len(cameras)
+    if n < 4:
+        return None, f"only {n} views: too few to refine"
+    if session is None:  # cameras given as they are (published poses)
+        angles, posed = np.full(n, np.nan), [True] * n
+    else:
+        angles = np.array([v.angle_deg if v.angle_deg is not None else np.nan for v in session.views], dtype=np.float64)
+        posed = [v.pose is not None for v in session.views]
+    tt = getattr(calibration, "turntable", None)
+    if not any(posed) and tt is not None and np.all(np.isfinite(angles)):
+        return Model("turntable", n, angles, base=tt.camera), ""
+    if all(posed):
+        C = np.stack([c.center for c in cameras])
+        m = C.mean(0)
+        _, sv, Vt = np.linalg.svd(C - m)
+        axis = Vt[2]
+        # the ring's centre in its plane
+        e1, e2 = Vt[0], Vt[1]
+        P = np.column_stack([(C - m) @ e1, (C - m) @ e2])
+        A = np.column_stack([2 * P, np.ones(n)])
+        sol = np.linalg.lstsq(A, np.sum(P * P, axis=1), rcond=None)[0]
+        centre = m + sol[0] * e1 + sol[1] * e2
+        rad = np.sqrt(sol[2] + sol[0] ** 2 + sol[1] ** 2)
+        spread = np.abs(np.linalg.norm(P - sol[:2], axis=1) - rad).max()
+        if not np.isfinite(rad) or spread > 0.1 * rad or sv[2] > 0.1 * sv[0]:
+            return None, "the given camera centres do not lie on a ring: no rotation axis to refine about"
+        # point the axis toward the cameras' up (-Y of the first camera)
+        if axis @ (-cameras[0].R[1]) < 0:
+            axis = -axis
+        ang = np.zeros(n)
+        return Model("posed", n, ang, posed=list(cameras), axis=axis, axis_point=centre, shared=False), ""
+    return None, "views mix given poses and table angles: not refined"
+
+
+def _refine(session, calibration, covs, cameras, mode, names):
+    model, why = _build_model(session, calibration, cameras)
+    base = dict(cameras=cameras, accepted=False, mode=mode, names=names)
+    if model is None:
+        return PoseRefinement(reason=f"not refined: {why}", **base)
+    cam0 = cameras[0]
+    rays, lows = [], []
+    for c, cam in zip(covs, cameras):
+        r, _ = outline_rays(c, cam)
+        if len(r) < 3:
+            return PoseRefinement(reason="not refined: a view has no silhouette outline", **base)
+        rays.append(r)
+        v = r[:, 1] * cam.K[1, 1] + cam.K[1, 2]
+        lows.append(v > v.max() - FOOT_PX)
+    H = pad_rays(rays)
+    low = pad_rays([np.repeat(lw[:, None], 3, axis=1).astype(float) for lw in lows])[:, :, 0] > 0.5
+    cen = np.stack([r.mean(0) for r in rays])
+    f = float(np.sqrt(cam0.K[0, 0] * cam0.K[1, 1]))
+    pb = Problem(model, H, cen, f, low=low)
+    if len(pb.I) < 2 * model.n:
+        return PoseRefinement(reason=f"not refined: only {len(pb.I)} usable view pairs", model=model.kind, **base)
+    x0 = np.zeros(model.n_params)
+    before = pb.view_rms(x0)
+    flagged = [int(i) for i in np.nonzero(before > FLAG_PX)[0]]
+    base.update(model=model.kind, before_px=before, after_px=before, flagged=flagged,
+                angle_corrections_deg=np.zeros(model.n))
+    if mode == "auto" and not flagged:
+        return PoseRefinement(reason=f"skipped: every view agrees (largest tangent RMS {np.nanmax(before):.2f} px "
+                              f"<= {FLAG_PX} px)", **base)
+    # candidates: the shared camera pose alone, the angles alone, both (each with a slip when
+    # one is found); the leave-out gate picks the simplest that views left out agree best with
+    kinds = ((True, False), (False, True), (True, True)) if model.kind == "turntable" else ((False, True),)
+    slip_view, slip = None, None
+    if model.kind == "turntable" and model.n >= 8:  # a slip, looked for once with the camera pose free (angles held)
+        m = replace(model, shared=True, angles_free=False)
+        p = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
+        x, _ = p.fit(np.zeros(m.n_params))
+        _, _, m_s, slip = _try_slip(p, m, x, H, cen, f, low)
+        slip_view = m_s.slip_view if slip is not None else None
+    if slip_view is not None:  # simplest first: the specimen moved, nothing else
+        kinds = ((False, False),) + kinds
+    cands = []
+    for shared, free in kinds:
+        m = replace(model, shared=shared, angles_free=free, slip_view=slip_view)
+        p = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
+        x, _ = p.fit(np.zeros(m.n_params))
+        cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x)))
+    pick = cands[0]
+    for c in cands[1:]:  # a richer model must do better by a margin
+        if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
+            pick = c
+    model, pb, x, slip, gate = pick
+    gate["refined"] = _kind(model)
+    gate["candidates"] = {_kind(c[0]): _f(c[4]["after_px"]) for c in cands}
+    after = pb.view_rms(x)
+    w, tau, d, s = model.split(x)
+    R, t = model.poses(x)
+    refined = [cam0.with_pose(R[i], t[i]) for i in range(model.n)]
+    rot = float(np.rad2deg(np.linalg.norm(w)))
+    shift = refined[0].center - (cameras[0].center if model.kind == "posed" else model.base.center)
+    info = dict(after_px=after, angle_corrections_deg=d, camera_rotation_deg=rot, camera_center_shift_mm=shift,
+                slip=slip, gate=gate)
+    base.update(info)
+    if gate["accepted"]:
+        base.update(cameras=refined, accepted=True)
+        what = f"the views left out of the fit agree better ({gate['before_px']:.3f} -> {gate['after_px']:.3f} px)"
+        return PoseRefinement(reason=f"applied: {what}", **base)
+    base["angle_corrections_deg"] = d
+    return PoseRefinement(
+        reason=(f"refused: the views left out of the fit agree no better ({gate['before_px']:.3f} -> "
+                f"{gate['after_px']:.3f} px): the silhouettes do not pin the poses better than the calibration "
+                "(a rotation-symmetric specimen hides its angles); poses left as calibrated"),
+        **base,
+    )
+
+
+def _kind(m):
+    parts = (["camera"] if m.n_shared else []) + (["angles"] if m.angles_free else []) + (["slip"] if m.slip_view is not None else [])
+    return "+".join(parts) or "nothing"
+
+
+def _split_score(pb, x, n):
+    """Per candidate first-moved view ``k``: mean residual across the split minus within the groups."""
+    r = np.sqrt(np.mean(pb.pair_residuals(x) ** 2, axis=1))
+    I, J = pb.I, pb.J
+    scores = np.full(n, -np.inf)
+    for k in range(3, n - 2):
+        cross = (I < k) != (J < k)
+        if cross.any() and (~cross).any():
+            scores[k] = r[cross].mean() - r[~cross].mean()
+    return scores
+
+
+def _try_slip(pb, model, x, H, cen, f, low=None):
+    """Fit a specimen slip at the best split; keep it when it explains the views much better."""
+    n = model.n
+    info0 = {"cost": _model.cost(pb.residuals(x))}
+    scores = _split_score(pb, x, n)
+    best = None
+    for k in [int(i) for i in np.argsort(scores)[::-1][:1] if np.isfinite(scores[i])]:
+        ms = replace(model, slip_view=k)
+        ps = Problem(ms, H, cen, f, pairs=(pb.I, pb.J), low=low)
+        xs, info = ps.fit(np.concatenate([x, np.zeros(3)]))
+        if best is None or info["cost"] < best[0]:
+            best = (info["cost"], k, ms, ps, xs)
+    if best is None or best[0] > SLIP_GAIN * info0["cost"]:
+        return x, pb, model, None
+    cost, k, ms, ps, xs = best
+    s = ms.split(xs)[3]
+    if np.hypot(s[0], s[1]) < SLIP_MIN_MM:  # a turn alone is a step of the angles, not a slide
+        return x, pb, model, None
+    slip = {"view": k, "translation_mm": [round(float(s[0]), 3), round(float(s[1]), 3)], "rotation_deg": round(float(s[2]), 3),
+            "cost_ratio": round(cost / info0["cost"], 3)}
+    return xs, ps, ms, slip
+
+
+def _slip_entry(model, x, found):
+    if model.slip_view is None:
+        return None
+    s = model.split(x)[3]
+    return {"view": model.slip_view, "translation_mm": [round(float(s[0]), 3), round(float(s[1]), 3)],
+            "rotation_deg": round(float(s[2]), 3), "cost_ratio": found.get("cost_ratio") if found else None}
+
+
+def _gate(pb, model, x):
+    """Leave-out folds: fit without views ``i % GATE_FOLDS == f``, score them against the others."""
+    n = model.n
+    x0 = np.zeros_like(x)
+    bef, aft = np.full(n, np.nan), np.full(n, np.nan)
+    folds = []
+    for fold in range(GATE_FOLDS):
+        held = np.array([i for i in range(n) if i % GATE_FOLDS == fold])
+        kept = np.array([i for i in range(n) if i % GATE_FOLDS != fold])
+        if len(held) == 0 or len(kept) < 3:
+            continue
+        wts = (~(np.isin(pb.I, held) | np.isin(pb.J, held))).astype(np.float64)
+        xf, _ = pb.fit(x, weights=wts)
+        b = pb.view_rms(x0, views=held, partners=kept)
+        a = pb.view_rms(xf, views=held, partners=kept)
+        bef[held], aft[held] = b[held], a[held]
+        folds.append({"left_out": [int(i) for i in held], "before_px": _f(np.nanmedian(b[held])), "after_px": _f(np.nanmedian(a[held]))})
+    mb, ma = float(np.nanmedian(bef)), float(np.nanmedian(aft))
+    ok = ma < GATE_RATIO * mb and mb - ma > GATE_MIN_PX
+    return {"accepted": bool(ok), "before_px": mb, "after_px": ma, "ratio_needed": GATE_RATIO, "min_gain_px": GATE_MIN_PX,
+            "folds": folds}

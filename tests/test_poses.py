@@ -1,0 +1,167 @@
+"""Pose refinement from the silhouettes (issue 20), on renders no default was tuned on.
+
+Scenes (organlab.synthetic, 24 views of 320 x 240 px, supersample 2, noise 1 grey
+level, intrinsics given, turntable calibrated from 8 board images), on an AAA
+of the sample's family with another shape (``aaa-7``) and on a cylinder:
+
+* a camera bumped after the board images (0.7 degrees, 1.4 mm);
+* the specimen slid (1.2, -0.9) mm on the plate from view 12 on;
+* a correct session;
+* a cylinder with view 7 taken 15 degrees off its label.
+
+Each refined pose is scored against the one that rendered the images
+(``truth.json``) and each hull's volume against the hull of the true cameras
+(same silhouettes, 2 mm), which isolates what the poses cost.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from organlab.calibration import calibration_for
+from organlab.carving import hull_field
+from organlab.camera import Camera
+from organlab.grid import VoxelGrid
+from organlab.poses import refine_poses
+from organlab.session import load_session
+from organlab.silhouette import silhouettes
+from organlab.synthetic import Cylinder, make_session
+
+from tests._shared_data import DINO, needs_dino
+
+SMALL = dict(image_size=(320, 240), n_views=24, n_intrinsic=0, n_turntable=8, n_background=5, supersample=2,
+             board_supersample=3, noise_sigma=1.0, include_camera=True, include_poses=False)
+BUMP = {"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)}
+SLIP = {"view": 12, "translation_mm": (1.2, -0.9), "rotation_deg": 0.0}
+
+
+def _scene(tmp_path_factory, name, **kw):
+    out = tmp_path_factory.mktemp(name)
+    make_session(out, **SMALL, **kw)
+    s = load_session(out)
+    cal, _ = calibration_for(s)
+    sils = silhouettes(s)
+    truth = json.loads((out / "truth.json").read_text())
+    cam = cal.camera
+    true_cams = [Camera(cam.K, cam.dist, np.array(v["R"]), np.array(v["t"]), image_size=cam.image_size) for v in truth["views"]]
+    return s, cal, sils, truth, true_cams
+
+
+def _volume(s, sils, cams):
+    grid = VoxelGrid.from_session(s, 2.0)
+    return hull_field(sils, cams, grid, sparse=True).mesh().volume
+
+
+def _rot_err_deg(Ra, Rb):
+    c = (np.trace(Ra.T @ Rb) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+
+
+def test_off_and_bad_input():
+    cams = [Camera(np.eye(3), np.zeros(5), np.eye(3), np.zeros(3), image_size=(4, 4))] * 2
+    r = refine_poses(None, None, [np.zeros((4, 4))] * 2, mode="off", cameras=cams)
+    assert not r.accepted and r.cameras == cams and r.to_dict()["mode"] == "off"
+    with pytest.raises(ValueError, match="mode must be one of"):
+        refine_poses(None, None, [], mode="yes", cameras=cams)
+    with pytest.raises(ValueError, match="one silhouette per view"):
+        refine_poses(None, None, [np.zeros((4, 4))], mode="on", cameras=cams)
+    # four views, a silhouette with no outline: said, not raised
+    r = refine_poses(None, None, [np.zeros((4, 4))] * 4, mode="on", cameras=cams * 2)
+    assert not r.accepted and "not refined" in r.reason
+
+
+@pytest.mark.slow
+def test_bumped_camera_is_corrected(tmp_path_factory):
+    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "bump", seed=3, specimen="aaa-7", camera_bump=BUMP)
+    r = refine_poses(s, cal, sils, mode="auto")
+    assert r.flagged and r.accepted, r.reason
+    before = max(_rot_err_deg(c.R, t.R) for c, t in zip(cal.cameras(s), true_cams))
+    after = max(_rot_err_deg(c.R, t.R) for c, t in zip(r.cameras, true_cams))
+    # measured: 0.70 -> 0.33 degrees: the pan and roll are seen; the tilt (0.3 of the bump)
+    # is held by its prior, as the camera's move along the axis and toward it: on a specimen
+    # near symmetric about the axis they only move, scale or reshape the model a little
+    # (docs/trust.md)
+    assert before > 0.6 and after < 0.45
+    v_true, v_cal, v_ref = (_volume(s, sils, c) for c in (true_cams, cal.cameras(s), r.cameras))
+    # measured: hull with the calibrated cameras -42.4 % of the true cameras' hull, refined -0.13 %
+    assert v_cal / v_true - 1 < -0.3
+    assert abs(v_ref / v_true - 1) < 0.01
+    d = r.to_dict()
+    assert d["accepted"] and d["camera_rotation_deg"] > 0.4 and d["tangent_rms_px"]["after_median"] < 0.5
+    # the pipeline carves with the refined cameras and reports it
+    from organlab.pipeline import reconstruct
+
+    rep = reconstruct(s, voxel_size=2.0, finish=False).report
+    assert rep["poses"]["accepted"] and rep["poses"]["mode"] == "auto" and rep["poses"]["seconds"] > 0
+    assert abs(rep["mesh_volume_mm3"] / v_ref - 1) < 1e-6
+    with pytest.raises(ValueError, match="refine_poses must be"):
+        reconstruct(s, voxel_size=2.0, refine_poses="always")
+
+
+@pytest.mark.slow
+def test_slid_specimen_is_found_and_one_model_built(tmp_path_factory):
+    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "slip", seed=4, specimen="aaa-7", slip=SLIP)
+    r = refine_poses(s, cal, sils, mode="auto")
+    assert r.accepted and r.slip is not None, r.reason
+    # measured: view 12, (1.23, -0.84) mm, the slip alone refined (the camera held)
+    assert abs(r.slip["view"] - 12) <= 1
+    assert np.hypot(*(np.array(r.slip["translation_mm"]) - SLIP["translation_mm"])) < 0.3
+    v_true, v_cal, v_ref = (_volume(s, sils, c) for c in (true_cams, cal.cameras(s), r.cameras))
+    # measured: -3.1 % with the calibrated cameras, +0.03 % refined
+    assert v_cal / v_true - 1 < -0.03
+    assert abs(v_ref / v_true - 1) < 0.01
+
+
+@pytest.mark.slow
+def test_correct_session_is_left_alone(tmp_path_factory):
+    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "ok", seed=1, specimen="aaa-7")
+    cams = cal.cameras(s)
+    for mode in ("auto", "on"):
+        r = refine_poses(s, cal, sils, mode=mode)
+        # measured: largest view 0.23 px (auto skips); 'on': left-out views 0.140 -> 0.128 px, refused
+        assert not r.accepted, r.reason
+        assert all(np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t) for a, b in zip(r.cameras, cams))
+
+
+@pytest.mark.slow
+def test_symmetric_specimen_with_a_mislabelled_view_is_refused(tmp_path_factory):
+    n = SMALL["n_views"]
+    true_angles = 360.0 * np.arange(n) / n + np.where(np.arange(n) == 7, 15.0, 0.0)
+    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "cyl", seed=9, specimen=Cylinder(radius=25.0, z1=90.0),
+                                            true_angles_deg=true_angles)
+    r = refine_poses(s, cal, sils, mode="on")
+    # the cylinder hides its angles: nothing to gain from the left-out views (0.136 -> 0.137 px)
+    assert not r.accepted and r.reason.startswith("refused") and "rotation-symmetric" in r.reason
+    assert r.to_dict()["gate"]["accepted"] is False
+    assert all(np.array_equal(a.R, b.R) for a, b in zip(r.cameras, cal.cameras(s)))
+
+
+@pytest.mark.slow
+@needs_dino
+def test_dino_agreement_not_lowered():
+    from organlab.agreement import model_mask
+    from organlab.datasets import load_middlebury, middlebury_silhouettes
+
+    data = load_middlebury(DINO)
+    masks = middlebury_silhouettes(data.images)
+    good = np.nonzero(data.good)[0]
+    m = [masks[i] for i in good]
+    cams = [data.cameras[i] for i in good]
+    r = refine_poses(None, None, m, mode="on", cameras=cams)
+    assert r.model == "posed"
+
+    def mean_iou(cs):
+        lo, hi = np.asarray(data.bbox[0]), np.asarray(data.bbox[1])
+        grid = VoxelGrid(tuple(lo - 4.0), 2.0, tuple(np.ceil((hi - lo + 8.0) / 2.0).astype(int)))
+        mesh = hull_field(m, cs, grid, sparse=True).mesh()
+        ious = []
+        for mask, c in zip(m, cs):
+            pm = model_mask(mesh, c, mask.shape)
+            ious.append((pm & mask).sum() / (pm | mask).sum())
+        return float(np.mean(ious))
+
+    # published cameras: the gate refuses (left-out views 0.763 -> 0.745 px), the cameras stay
+    assert mean_iou(r.cameras) >= mean_iou(cams) - 1e-9
+    if not r.accepted:
+        assert all(a is b for a, b in zip(r.cameras, cams))
