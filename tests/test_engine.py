@@ -47,7 +47,7 @@ def test_engine_reruns_only_what_a_setting_invalidates(posed):
     seen = []
     base = Settings(voxel_size=2.0, finish=False)
     rec = eng.run(base, on_stage=lambda name, result: seen.append(name))
-    assert seen == ["calibration", "silhouettes", "carving", "coloring", "mesh", "surface", "checks"]
+    assert seen == ["calibration", "silhouettes", "poses", "carving", "coloring", "mesh", "surface", "checks"]
     assert all(eng.computed[s] == 1 for s in STAGES)
     # the same result as reconstruct()
     ref = reconstruct(root, voxel_size=2.0, finish=False)

@@ -26,6 +26,7 @@ from organlab.grid import VoxelGrid
 from organlab.poses import refine_poses
 from organlab.session import load_session
 from organlab.silhouette import silhouettes
+from organlab.surface import mesh_from_field
 from organlab.synthetic import Cylinder, make_session
 
 from tests._shared_data import DINO, needs_dino
@@ -50,7 +51,7 @@ def _scene(tmp_path_factory, name, **kw):
 
 def _volume(s, sils, cams):
     grid = VoxelGrid.from_session(s, 2.0)
-    return hull_field(sils, cams, grid, sparse=True).mesh().volume
+    return mesh_from_field(hull_field(sils, cams, grid, sparse=True), grid).volume
 
 
 def _rot_err_deg(Ra, Rb):
@@ -154,7 +155,7 @@ def test_dino_agreement_not_lowered():
     def mean_iou(cs):
         lo, hi = np.asarray(data.bbox[0]), np.asarray(data.bbox[1])
         grid = VoxelGrid(tuple(lo - 4.0), 2.0, tuple(np.ceil((hi - lo + 8.0) / 2.0).astype(int)))
-        mesh = hull_field(m, cs, grid, sparse=True).mesh()
+        mesh = mesh_from_field(hull_field(m, cs, grid, sparse=True), grid)
         ious = []
         for mask, c in zip(m, cs):
             pm = model_mask(mesh, c, mask.shape)

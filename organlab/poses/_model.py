@@ -192,10 +192,12 @@ class Problem:
         n = self.model.n
         I, J = np.triu_indices(n, 1)
         rays_w, C, cen_w = self._geometry(x)
+        # no baseline, no epipolar planes: two views at one pose (e.g. a view labelled with another's angle)
+        apart = np.linalg.norm(C[J] - C[I], axis=1) > 1e-3 * np.linalg.norm(C, axis=1).mean()
+        I, J = I[apart], J[apart]
         psi, si, sj = pair_angles(rays_w, C, cen_w, I, J)
         lim = np.deg2rad(MAX_HALF_ANGLE_DEG)
         ok = (np.abs(psi).max(axis=1) < lim) & (si > 0.2) & (sj > 0.2)
-        ok &= np.linalg.norm(C[J] - C[I], axis=1) > 1e-3 * np.linalg.norm(C, axis=1).mean()
         return I[ok], J[ok]
 
     def _scale(self, x):
