@@ -31,7 +31,7 @@ SAMPLE = ROOT / "sample_sessions" / "aaa_phantom"
 # 6 thresholds x 2 tolerances = 12 settings in 6 tasks (each task: one threshold's silhouettes, both tolerances)
 GRID = {"threshold": [10.0, 15.0, 20.0, 25.0, 30.0, 35.0], "tolerance": [0, 1]}
 BASE = {"voxel_size": 2.0, "finish": False, "measure": False}
-TIME_COLUMNS = ("seconds", "status")
+TIME_COLUMNS = ("seconds", "status", "stages_run")
 
 
 @pytest.fixture(scope="module")
@@ -125,6 +125,12 @@ def test_twelve_settings_on_a_local_cluster_are_identical_to_the_serial_fallback
     df = ob.sweep(session, GRID, settings=BASE, out=tmp_path, calibration=calibration, client=client)
     assert len(df) == 12 and (df["status"] == "done").all() and (ref["status"] == "done").all()
     _assert_same_table(df, ref)
+    # work shared: each task computed one threshold's silhouettes once, for both tolerances
+    for stages in (df, ref):
+        runs = stages.set_index(["threshold", "tolerance"])["stages_run"]
+        for t in GRID["threshold"]:
+            assert runs[(t, 0)].split(",")[:2] == ["calibration", "silhouettes"], runs[(t, 0)]
+            assert runs[(t, 1)].split(",")[0] == "carving", runs[(t, 1)]
     for name in df["name"]:
         _assert_same_result(tmp_path / "results" / name, ref_out / "results" / name)
     # the results are reconstructions, not placeholders: at threshold 10 and tolerance 0 the carved volume is

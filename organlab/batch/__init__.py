@@ -33,7 +33,7 @@ from .._progress import NullProgress
 from ..errors import OrganlabError
 from ..preflight import available_memory, check_grid_memory
 from ..session import Session, load_session
-from ._engine import Settings
+from ..engine import Settings
 from ._plan import expand, parse_values, plan_tasks, result_name
 from ._run import SWEEP_FILE, Job, clean_partial, dask_client, execute, finished, n_workers, worker_memory, write_result
 from ._table import SETTING_COLUMNS, plot_sweep, recommend, row_of
@@ -186,7 +186,7 @@ def sweep(session, grid, *, settings=None, out=None, client=None, workers=0, sch
             if "p" not in prepared:
                 from ._task import prepare
 
-                prepared["p"] = prepare(session, calibration=calibration, recalibrate=recalibrate)
+                prepared["p"] = prepare(session, calibration=calibration, recalibrate=recalibrate, settings=runnable[0])
             return prepared["p"]
 
         jobs = [Job(root, prep, g, [result_name(s) for s in g], label=session.name)
@@ -269,7 +269,7 @@ def batch(sessions, settings=None, *, out, client=None, workers=0, scheduler=Non
             why = _check_memory(session, s, limit[0])
             if why is not None:
                 raise OrganlabError(why)
-            return prepare(session)
+            return prepare(session, settings=s)
 
         index[name] = i
         jobs.append(Job(root, prep, [s], [name], label=label))

@@ -8,16 +8,16 @@ import itertools
 import json
 import math
 
-from ._engine import Settings
+from ..engine import DEPENDS, STAGES, Settings
 
 __all__ = ["parse_values", "expand", "result_name", "plan_tasks", "LATE_FIELDS"]
 
-#: Settings read only from the carving stage on: settings that differ only in these share their
-#: calibration and silhouettes, so one task runs them all through one Engine (which caches the
-#: silhouettes).  Every other field (the threshold, and fields added later) starts a new task group.
-LATE_FIELDS = ("voxel_size", "hull", "tolerance", "roi", "method", "color_threshold", "finish", "measure")
-#: Within a group, settings sharing these run one after another, so the Engine re-uses the carving too.
-_CARVING_FIELDS = ("voxel_size", "hull", "tolerance", "roi")
+#: Settings read only from the carving stage on (:data:`organlab.engine.DEPENDS`): settings that differ
+#: only in these share their calibration and silhouettes, so one task runs them all through one Engine,
+#: which keeps the silhouettes.  Every other field (the threshold, and fields added later) starts a new group.
+LATE_FIELDS = tuple(f for stage in STAGES[STAGES.index("carving"):] for f in DEPENDS[stage])
+#: Within a group, settings sharing these run one after another, so the Engine keeps the carving too.
+_CARVING_FIELDS = DEPENDS["carving"]
 
 _FLOAT_OR_AUTO = ("threshold", "color_threshold")
 

@@ -16,10 +16,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..calibration import Calibration, calibration_for
+from ..calibration import Calibration
+from ..engine import STAGES, Engine, Settings
 from ..errors import OrganlabError
 from ..session import Session, load_session
-from ._engine import Engine, Settings
 
 __all__ = ["Prepared", "prepare", "run_task"]
 
@@ -50,18 +50,18 @@ class Prepared:
         return int(sum(im.nbytes for im in self.images))
 
 
-def prepare(session, *, calibration=None, recalibrate=False):
-    """Load, calibrate and read a session once, on the client.
+def prepare(session, *, calibration=None, recalibrate=False, settings=None):
+    """Load, calibrate and read a session once, on the client (the engine's calibration stage).
 
-    Raises the session's own one-line errors (:class:`~organlab.errors.OrganlabError`).
+    ``settings``: the first a task will run (its grid is checked against the
+    memory before the calibration runs).  Raises the session's own one-line
+    errors (:class:`~organlab.errors.OrganlabError`).
     """
-    if not isinstance(session, Session):
-        session = load_session(session)
-    if not session.views:
-        raise OrganlabError(f"{session.json_path}: views: the session has no views to reconstruct (calibration-only session)")
-    cal, how = calibration_for(session, calibration=calibration, recalibrate=recalibrate)
-    cal.cameras(session)  # a missing pose or turntable fit fails here, once, not in every task
-    return Prepared(session, cal.to_dict(), how, tuple(session.images()))
+    engine = Engine(session, calibration=calibration, recalibrate=recalibrate)
+    stages = {}
+    engine.run(settings or Settings(), until="calibration", on_stage=lambda name, result: stages.setdefault(name, result))
+    cal = stages["calibration"]
+    return Prepared(engine.session, cal.calibration.to_dict(), cal.how, tuple(engine.images))
 
 
 @contextmanager
@@ -84,17 +84,29 @@ def _one_thread():
         numba.set_num_threads(before)
 
 
+def _worker_memory():
+    """The memory limit of the Dask worker running this task, bytes (None outside a worker, or without a limit).
+
+    The engine's pre-flight check then refuses a grid that does not fit in one
+    worker's share rather than the machine's.
+    """
+    try:
+        from distributed import get_worker
+
+        return get_worker().memory_manager.memory_limit or None
+    except (ImportError, ValueError, AttributeError):
+        return None
+
+
 def _report_dict(rec):
     rep = rec.report
     return rep.to_dict() if hasattr(rep, "to_dict") else dict(rep)
 
 
 def _files_of(rec):
-    """The result's files (``write_outputs``), written in a local temporary folder and returned as bytes."""
-    from ..pipeline import write_outputs
-
+    """The result's files (:meth:`Reconstruction.save`), written in a local temporary folder and returned as bytes."""
     with tempfile.TemporaryDirectory(prefix="organlab-task-") as tmp:
-        write_outputs(rec, tmp, atomic=False)
+        rec.save(tmp, atomic=False)
         return {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir()) if p.is_file()}
 
 
@@ -115,7 +127,9 @@ def run_task(prepared, settings, *, files=True):
     list of dict
         Per setting: ``settings`` (dict), ``report`` (dict or None),
         ``files`` (dict of name -> bytes, or None), ``seconds`` (wall time
-        of this setting, shared stages counted where they ran), ``error``
+        of this setting, shared stages counted where they ran),
+        ``stages_run`` (the stages computed for it; the others were kept
+        from the setting before), ``error``
         (one line, or None).  A setting that fails with an organlab error
         (bad input, nothing carved) is an error entry; the others still run.
     """
@@ -126,13 +140,15 @@ def run_task(prepared, settings, *, files=True):
 def _run(prepared, settings, files):
     session = prepared.session
     cal = Calibration.from_dict(prepared.calibration, image_size=session.image_size, where=f"{session.root} (calibration)")
-    engine = Engine(session, calibration=cal, images=list(prepared.images))
+    engine = Engine(session, calibration=cal, images=list(prepared.images), max_memory=_worker_memory())
     out = []
     for d in settings:
         t0 = time.perf_counter()
         entry = {"settings": dict(d), "report": None, "files": None, "seconds": 0.0, "error": None}
+        before = dict(engine.computed)
         try:
             rec = engine.run(Settings.from_dict(d))
+            entry["stages_run"] = [k for k in STAGES if engine.computed[k] > before[k]]
             entry["report"] = _report_dict(rec)
             if files:
                 entry["files"] = _files_of(rec)
