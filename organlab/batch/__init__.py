@@ -210,7 +210,7 @@ def sweep(session, grid, *, settings=None, out=None, client=None, workers=0, sch
         _write_csv(df, out / "summary.csv")
         (out / "recommended.json").write_text(json.dumps(rec, indent=1, default=str) + "\n")
         if plots:
-            df.attrs["plots"] = [str(p) for p in plot_sweep(df, swept or [grid and next(iter(grid))], out / "plots")]
+            df.attrs["plots"] = [str(p) for p in plot_sweep(df, swept or list(grid)[:1], out / "plots")]
     return df
 
 

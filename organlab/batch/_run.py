@@ -14,6 +14,7 @@ import json
 import os
 import shutil
 import sys
+import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -175,7 +176,7 @@ def execute(jobs, *, client, files, on_result):
             on_result(job, _error_entries(job, str(e)))
             continue
         f = client.submit(run_task, scattered[job.key], [s.to_dict() for s in job.settings], files=files,
-                          pure=False, priority=len(jobs) - i, key=f"organlab-task-{i}-{os.getpid()}-{id(job):x}")
+                          pure=False, priority=len(jobs) - i, key=f"organlab-task-{i}-{uuid.uuid4().hex}")
         pending[f.key] = job
         futures.add(f)
     for f in futures:
