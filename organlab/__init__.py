@@ -55,6 +55,7 @@ _LAZY = {
     "Reconstruction": "pipeline",
     "reconstruct": "pipeline",
     "write_outputs": "pipeline",
+    "sweep": "batch",
 }
 
 __all__ = ["Camera", "VoxelGrid", "Session", "load_session", "OrganlabError", "SessionError", "CalibrationError",

@@ -10,6 +10,9 @@
     organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [--view [--port P]] [...]
     organlab view SESSION [--result DIR] [--port P] [--host H] [--voxel-size MM]
+    organlab sweep SESSION --out DIR [--threshold 10:40:5] [--voxel-size 2,1] [--method hull,coloring] [...]
+                   [--workers N | --scheduler ADDRESS]
+    organlab batch SESSION... --out DIR [--voxel-size MM] [--threshold T] [...] [--workers N | --scheduler ADDRESS]
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -25,9 +28,9 @@ import sys
 from pathlib import Path
 
 from .agreement import model_mask
+from .batch import batch, parse_values, sweep
 from .calibration import calibrate, export_cameras
 from .capture import run_capture
-from .validate import printable
 from .cliparser import OneLineParser as _Parser
 from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
@@ -38,6 +41,7 @@ from .scaffold import init_session
 from .session import load_session
 from .surface import mesh_result
 from .synthetic import SimRig, main as synth_main
+from .validate import printable
 from .viewer import CaptureViewer, SessionViewer
 
 #: Settings (organlab.engine.Settings) whose flag is not --NAME
@@ -193,6 +197,7 @@ def _parser():
                        "'organlab synth --help' lists its options)")
     s.add_argument("args", nargs=argparse.REMAINDER)
     _capture_parser(sub)
+    _sweep_parsers(sub)
     return p
 
 
@@ -535,6 +540,126 @@ def _synth(argv):
     return synth_main(argv)
 
 
+# ---------------------------------------------------------------- sweep and batch (issue 23): organlab.batch on Dask
+def _workers_arg(text):
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
+    return n
+
+
+def _dask_arguments(p):
+    p.add_argument("--workers", type=_workers_arg, default=None, metavar="N",
+                   help="worker processes of the local Dask cluster, one thread each (default: one per CPU core); "
+                        "0 runs every task in this process, without Dask")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: $DASK_SCHEDULER_ADDRESS, else a "
+                        "local cluster); its workers need organlab and read the session folder at the same path")
+    p.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _sweep_parsers(sub):
+    w = sub.add_parser("sweep", help="reconstruct one session over ranges of settings on Dask: summary.csv, plots, "
+                       "the recommended setting")
+    w.add_argument("session", type=Path, help="session folder (holds session.json)")
+    w.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="DIR/results/NAME per setting, DIR/summary.csv, DIR/recommended.json, DIR/plots; a re-run "
+                        "skips the finished results")
+    rng = " (a list A,B,C or an inclusive range START:STOP:STEP)"
+    w.add_argument("--threshold", default="auto", metavar="VALUES",
+                   help="silhouette thresholds in grey levels" + rng + "; auto: Li's threshold per view (default)")
+    w.add_argument("--voxel-size", default="1", metavar="MM", help="voxel edges in mm" + rng + " (default 1)")
+    w.add_argument("--method", default="hull", metavar="hull,coloring,...", help="methods, a list (default hull)")
+    w.add_argument("--hull", default="subvoxel", metavar="subvoxel,thesis", help="hull tests, a list (default subvoxel)")
+    w.add_argument("--color-threshold", default="auto", metavar="VALUES",
+                   help="photo-consistency thresholds for coloring/space_carving" + rng + " (default auto)")
+    w.add_argument("--tolerance", default="0", metavar="K", help="views allowed to disagree" + rng + " (default 0)")
+    w.add_argument("--calibration", type=Path, default=None, metavar="PATH", help="use this calibration.json")
+    w.add_argument("--recalibrate", action="store_true", help="calibrate from the board images (once, before the sweep)")
+    w.add_argument("--no-plots", action="store_true", help="no PNG plots")
+    _dask_arguments(w)
+
+    b = sub.add_parser("batch", help="reconstruct many sessions at one setting on Dask; a bad session is one line")
+    b.add_argument("sessions", type=Path, nargs="+", metavar="SESSION", help="session folders")
+    b.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="DIR/results/SESSION_NAME per session and DIR/summary.csv; a re-run skips the finished ones")
+    b.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
+    b.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
+                   help="silhouette threshold in grey levels (default: automatic per view)")
+    b.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull")
+    b.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel")
+    b.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X")
+    b.add_argument("--tolerance", type=int, default=0, metavar="K")
+    _dask_arguments(b)
+
+
+def _dask_options(a):
+    if a.scheduler is not None and a.workers is not None:
+        raise OrganlabError("--scheduler and --workers exclude each other (the scheduler's cluster has its own workers)")
+    return {"scheduler": a.scheduler, "workers": a.workers}
+
+
+def _batch_bar(a, label):
+    return None if a.quiet else ProgressBar(label)
+
+
+def _print_failures(df, what):
+    """One line per failed result on stderr; exit status 2 when there is one."""
+    bad = df[df["status"] == "error"]
+    for _, r in bad.iterrows():
+        print(f"organlab: error: {r['name']}: {r['error']}", file=sys.stderr)
+    return 2 if len(bad) else 0
+
+
+def _sweep(a):
+    grid = {}
+    for flag, name in (("threshold", "threshold"), ("voxel_size", "voxel_size"), ("method", "method"), ("hull", "hull"),
+                       ("color_threshold", "color_threshold"), ("tolerance", "tolerance")):
+        try:
+            grid[name] = parse_values(getattr(a, flag), name=name)
+        except ValueError as e:
+            raise OrganlabError(f"--{flag.replace('_', '-')}: {str(e).split(': ', 1)[-1]}") from None
+    try:
+        df = sweep(a.session, grid, settings={"finish": not a.raw_surface}, out=a.out, calibration=a.calibration,
+                   recalibrate=a.recalibrate, progress=_batch_bar(a, "sweep"), plots=not a.no_plots, **_dask_options(a))
+    except ValueError as e:  # a value the settings refuse (names the setting)
+        raise OrganlabError(f"{a.session}: {e}") from None
+    ok = df[df["status"] != "error"]
+    print(f"organlab sweep: {df['session'].iloc[0]}: {len(df)} settings ({(df['status'] == 'done').sum()} computed, "
+          f"{(df['status'] == 'finished before').sum()} finished before, {(df['status'] == 'error').sum()} failed) "
+          f"-> {a.out}")
+    for _, r in ok.iterrows():
+        ref = f" ({r['volume_error_pct']:+.2f} %)" if r["volume_error_pct"] == r["volume_error_pct"] else ""
+        print(f"  {r['name']:<44} {r['volume_mm3'] / 1000:8.2f} cm3{ref}  agreement {r['agreement_mean_iou']:.4f} "
+              f"(worst {r['agreement_worst_iou']:.4f})  {r['n_warnings']} warning(s)")
+    rec = df.attrs.get("recommended")
+    if rec:
+        print(f"  recommended: {rec['name']}: {rec['reason']}")
+    print(f"  wrote summary.csv, recommended.json{', plots/' if not a.no_plots else ''}, results/")
+    return _print_failures(df, "settings")
+
+
+def _batch(a):
+    settings = {"voxel_size": a.voxel_size, "threshold": a.threshold, "method": a.method, "hull": a.hull,
+                "color_threshold": a.color_threshold, "tolerance": a.tolerance, "finish": not a.raw_surface}
+    try:
+        df = batch(a.sessions, settings, out=a.out, progress=_batch_bar(a, "batch"), **_dask_options(a))
+    except ValueError as e:
+        raise OrganlabError(str(e)) from None
+    print(f"organlab batch: {len(df)} sessions ({(df['status'] == 'done').sum()} computed, "
+          f"{(df['status'] == 'finished before').sum()} finished before, {(df['status'] == 'error').sum()} failed) "
+          f"-> {a.out}")
+    for _, r in df[df["status"] != "error"].iterrows():
+        ref = f" ({r['volume_error_pct']:+.2f} %)" if r["volume_error_pct"] == r["volume_error_pct"] else ""
+        print(f"  {r['name']:<30} {r['volume_mm3'] / 1000:8.2f} cm3{ref}  agreement {r['agreement_mean_iou']:.4f}  "
+              f"{r['n_warnings']} warning(s)")
+    return _print_failures(df, "sessions")
+
+
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["synth"]:  # its own parser (python -m organlab.synthetic), options and --help included
@@ -542,8 +667,8 @@ def main(argv=None):
     else:
         args = _parser().parse_args(argv)
         handler = {"reconstruct": _reconstruct, "calibrate": _calibrate, "capture": _capture, "view": _view,
-                   "mesh": _mesh, "init": _init,
-                   "export-cameras": _export_cameras}[args.command]
+                   "mesh": _mesh, "init": _init, "export-cameras": _export_cameras, "sweep": _sweep,
+                   "batch": _batch}[args.command]
     try:
         return handler(args)
     except OrganlabError as e:  # one line: text from files (names, paths) with its control characters escaped

@@ -23,7 +23,7 @@ FLOORS = {
                "progress", "cliparser", "preflight"},
     "stages": {"calibration", "capture", "silhouette", "poses", "carving", "coloring", "surface", "agreement",
                "checks", "scaffold"},
-    "engine": {"engine", "pipeline"},
+    "engine": {"engine", "pipeline", "batch"},
     "faces": {"cli", "__main__", "viewer", "widgets", "figures"},
 }
 ORDER = list(FLOORS)
