@@ -131,7 +131,7 @@ def main():
     from organlab.pipeline import pixel_footprint
     from organlab.session import load_session
     from organlab.silhouette import SilhouetteModel, silhouettes
-    from organlab.surface import finish_surface, measure_aaa
+    from organlab.surface import finish_surface, measure_aaa, mesh_from_field
 
     session = load_session(a.session)
     cameras, source = session_cameras(session)
@@ -163,7 +163,7 @@ def main():
     for vs in a.voxel_sizes:
         grid = VoxelGrid.from_roi(session.roi_min, session.roi_max, vs)
         field, *rh = measure(lambda: carving.hull_field(coverages, cameras, grid, sparse=True), a.repeat)
-        mesh, *rs = measure(field.mesh, a.repeat)
+        mesh, *rs = measure(lambda: mesh_from_field(field, grid), a.repeat)
         _, *ro = measure(field.occupancy, 1)
         foot = pixel_footprint(cameras, grid)
         (fin, rep), *rf = measure(lambda: finish_surface(mesh, voxel_size=vs, min_edge_mm=foot), a.repeat)

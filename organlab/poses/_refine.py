@@ -34,6 +34,13 @@ SLIP_GAIN = 0.6
 #: ... and when the specimen moved at least this far on the plate, mm (a turn alone is a step
 #: in the angles: measured on a drifting table, a 'slip' of 0.02 mm and 1 degree at the middle view).
 SLIP_MIN_MM = 0.25
+#: Corrections beyond these are refused whatever the gate says: the rigs this corrects (a camera bumped by
+#: 0.5-1 degree and 1-2 mm, a table 3 degrees off over a turn, a specimen slid 1-2 mm) stay far below them,
+#: while silhouettes that are wrong (plain subtraction of a hard session: the camera "turned" 49 degrees,
+#: its tangent residuals 30 px before and 6 px after) let the fit wander anywhere.
+MAX_ROTATION_DEG = 5.0
+MAX_SHIFT_MM = 20.0
+MAX_ANGLE_DEG = 15.0
 
 
 @dataclass
@@ -269,6 +276,11 @@ def _refine(session, calibration, covs, cameras, mode, names):
     info = dict(after_px=after, angle_corrections_deg=d, camera_rotation_deg=rot, camera_center_shift_mm=shift,
                 slip=slip, gate=gate)
     base.update(info)
+    big = _too_large(rot, shift, d, slip)
+    if gate["accepted"] and big:  # silhouettes this far off make any pose fit them "better": not a rig that moved
+        return PoseRefinement(reason=(f"refused: the correction is too large to be a rig that moved ({big}); "
+                                      "check the silhouettes (threshold, backdrop) and the calibration; poses left "
+                                      "as calibrated"), **base)
     if gate["accepted"]:
         base.update(cameras=refined, accepted=True)
         what = f"the views left out of the fit agree better ({gate['before_px']:.3f} -> {gate['after_px']:.3f} px)"
@@ -280,6 +292,20 @@ def _refine(session, calibration, covs, cameras, mode, names):
                 "(a rotation-symmetric specimen hides its angles); poses left as calibrated"),
         **base,
     )
+
+
+def _too_large(rot_deg, shift_mm, angles_deg, slip):
+    """Why a correction is beyond what a bumped camera, a slipping table or a settling specimen do, or ''."""
+    why = []
+    if rot_deg > MAX_ROTATION_DEG:
+        why.append(f"camera turned {rot_deg:.1f} degrees > {MAX_ROTATION_DEG:g}")
+    if np.linalg.norm(shift_mm) > MAX_SHIFT_MM:
+        why.append(f"camera moved {np.linalg.norm(shift_mm):.1f} mm > {MAX_SHIFT_MM:g}")
+    if len(angles_deg) and np.max(np.abs(angles_deg)) > MAX_ANGLE_DEG:
+        why.append(f"a table angle changed {np.max(np.abs(angles_deg)):.1f} degrees > {MAX_ANGLE_DEG:g}")
+    if slip is not None and np.linalg.norm(slip.get("translation_mm", [0.0, 0.0])) > MAX_SHIFT_MM:
+        why.append(f"the specimen slid {np.linalg.norm(slip['translation_mm']):.1f} mm > {MAX_SHIFT_MM:g}")
+    return "; ".join(why)
 
 
 def _kind(m):
