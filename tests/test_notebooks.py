@@ -69,6 +69,75 @@ def test_written_notebooks_match_their_sources():
     assert build.main(["--check"]) == 0
 
 
+def _copy_notebooks(tmp_path):
+    import shutil
+
+    root = tmp_path / "notebooks"
+    for sub in ("src", *build.VERSIONS):
+        shutil.copytree(NB / sub, root / sub)
+    return root
+
+
+def _autosave_as_jupyterlab(path):
+    """Rewrite a notebook as JupyterLab 4 does when it opens, runs and autosaves it (no edit of a cell)."""
+    import json
+
+    doc = json.loads(path.read_text())
+    doc["metadata"]["kernelspec"] = {"display_name": "Python 3 (ipykernel)", "language": "python", "name": "python3"}
+    doc["metadata"]["language_info"] = {
+        "codemirror_mode": {"name": "ipython", "version": 3}, "file_extension": ".py", "mimetype": "text/x-python",
+        "name": "python", "nbconvert_exporter": "python", "pygments_lexer": "ipython3", "version": "3.11.2",
+    }
+    doc["metadata"]["widgets"] = {"application/vnd.jupyter.widget-state+json": {
+        "state": {"0f3a": {"model_module": "@jupyter-widgets/controls", "model_module_version": "2.0.0",
+                           "model_name": "FloatSliderModel", "state": {"value": 41.0}}},
+        "version_major": 2, "version_minor": 0}}
+    for n, cell in enumerate(doc["cells"]):
+        cell["metadata"].update({"trusted": True, "scrolled": True, "jupyter": {"source_hidden": False}})
+        if cell["cell_type"] == "code":
+            cell["execution_count"] = n + 1
+            cell["metadata"]["execution"] = {"iopub.execute_input": "2026-12-01T20:00:00.000Z"}
+            cell["outputs"] = [{"name": "stdout", "output_type": "stream", "text": ["ran\n"]}]
+    # JupyterLab writes one JSON line per source line, indent 1, and keeps unknown metadata (organlab's digest)
+    path.write_text(json.dumps(doc, indent=1, ensure_ascii=False) + "\n")
+
+
+def test_jupyterlab_autosave_keeps_the_notebooks_fresh(tmp_path, capsys):
+    """Opening, running and autosaving a student notebook is not an edit: the freshness check still passes."""
+    root = _copy_notebooks(tmp_path)
+    nb_path = root / "student" / "01_calibration.ipynb"
+    before = nb_path.read_text()
+    _autosave_as_jupyterlab(nb_path)
+    assert nb_path.read_text() != before
+    assert build.freshen(root, check=True) == 0, capsys.readouterr().err
+    # a student's answer in an exercise cell is an edit: reported, and neither a check nor a build overwrites it
+    doc = nbformat.read(nb_path, as_version=4)
+    k = next(i for i, c in enumerate(doc.cells) if "rms_05 = None" in c.source)
+    doc.cells[k].source = doc.cells[k].source.replace("rms_05 = None  # your code here", "rms_05 = 0.04  # my answer")
+    nbformat.write(doc, nb_path)
+    mine = nb_path.read_text()
+    assert build.freshen(root, check=True) == 1
+    err = capsys.readouterr().err
+    assert f"student/01_calibration.ipynb (cell {k + 1} (source))" in err and "never overwrites" in err
+    assert "run python notebooks/build.py" not in err
+    assert build.freshen(root, say=lambda _m: None) == 1  # a plain build leaves the student's work alone
+    assert nb_path.read_text() == mine
+    # a changed source with an untouched notebook is stale, and a build rewrites it
+    src = root / "src" / "02_background_and_silhouettes.py"
+    src.write_text(src.read_text().replace("# %% [markdown]\n", "# %% [markdown]\n# A new first line.\n#\n", 1))
+    assert build.freshen(root, check=True) == 1
+    assert "out of date with its source" in capsys.readouterr().err
+    build.freshen(root, say=lambda _m: None)
+    assert "A new first line." in (root / "solutions" / "02_background_and_silhouettes.ipynb").read_text()
+    assert nb_path.read_text() == mine
+    assert build.freshen(root, check=True, force=True) == 1 and build.freshen(root, force=True, say=print) == 0
+    assert "rms_05 = 0.04" not in nb_path.read_text()
+
+
+def test_checkpoints_are_ignored():
+    assert ".ipynb_checkpoints/" in (ROOT / ".gitignore").read_text().splitlines()
+
+
 def test_build_splits_solutions():
     src = "x = 1\n    # BEGIN SOLUTION\n    y = x + 1\n    # END SOLUTION\n    # STUB: y = None\nprint(y)"
     sol, stu, raises = build.split_solution(src)
