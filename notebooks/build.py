@@ -104,6 +104,9 @@ def build_one(path):
         })
         for n, cell in enumerate(src.cells):
             tags = list(cell.metadata.get("tags", []))
+            if "needs-person" in tags:
+                raise BuildError(f"{path.name}: cell {n}: 'needs-person' cells are gone: every cell runs under Run All; "
+                                 "guard a real-rig cell with a flag set in the first cells (RIG_ATTACHED = False)")
             if cell.cell_type == "code":
                 sol, stu, raises = split_solution(cell.source, where=f"{path.name}: cell {n}")
                 text = sol if version == "solutions" else stu
@@ -175,20 +178,41 @@ def render(nb):
     return nbformat.writes(nb) + "\n"
 
 
+def notebook_client(nb, cwd, *, timeout=600, **options):
+    """An nbclient ``NotebookClient`` running ``nb`` in the current interpreter's kernel, in folder ``cwd``.
+
+    nbclient's stand-in for a frontend's Output widget sends every output
+    back to the kernel on the shell socket while the client waits on that
+    socket for the cell's reply; the wake-up can be lost, and the reply is
+    then seen only when the cell's timeout ends (jupyter/nbclient#312:
+    measured here as 300 s stalls of the calibration checker's cell, one run
+    in three, on a loaded machine).  The stand-in used here records the
+    outputs (widget state) without echoing them: no notebook reads an Output
+    widget's outputs back in the kernel.
+    """
+    import nbclient
+    from nbclient.output_widget import OutputWidget
+
+    class _RecordingOutput(OutputWidget):
+        def sync_state(self):
+            pass
+
+    client = nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
+                                     resources={"metadata": {"path": str(cwd)}}, **options)
+    client.widget_registry["@jupyter-widgets/output"] = {"OutputModel": _RecordingOutput}
+    return client
+
+
 def key_pictures(out_dir, *, timeout=600):
     """Execute every solution notebook and write the PNG of its ``key-picture`` cell; returns the paths."""
     import base64
-
-    import nbclient
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for path in sources():
         nb = build_one(path)["solutions"]
-        nb.cells = [c for c in nb.cells if "needs-person" not in c.metadata.get("tags", [])]
-        nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
-                                resources={"metadata": {"path": str(target("solutions", path).parent)}}).execute()
+        notebook_client(nb, target("solutions", path).parent, timeout=timeout).execute()
         pngs = [o["data"]["image/png"] for c in nb.cells if "key-picture" in c.metadata.get("tags", [])
                 for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
         if not pngs:
