@@ -30,7 +30,7 @@ import numpy as np
 
 from .silhouette import as_arrays
 
-__all__ = ["AGREEMENT_LIMIT", "ViewAgreement", "model_mask", "suggest_angles", "view_agreement"]
+__all__ = ["AGREEMENT_LIMIT", "MANY_FLAGGED", "ViewAgreement", "model_mask", "suggest_angles", "view_agreement"]
 
 #: Largest accepted fraction of a silhouette left unexplained by the model
 #: beyond the outline tolerance (see the module docstring for the measured figures).
@@ -38,6 +38,9 @@ AGREEMENT_LIMIT = 0.003
 
 #: More than this fraction of views over the limit points at the whole set of views.
 _MANY = 0.5
+
+#: Public name of the same fraction (the engine asks for angle suggestions only below it).
+MANY_FLAGGED = _MANY
 
 
 @dataclass

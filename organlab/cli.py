@@ -24,7 +24,10 @@ import sys
 from pathlib import Path
 
 from ._cliparser import OneLineParser as _Parser
-from .errors import OrganlabError
+from .errors import OrganlabError, SettingsError
+
+#: Settings (organlab.engine.Settings) whose flag is not --NAME
+_FLAGS = {"finish": "--raw-surface", "measure": "--measure"}
 
 
 def _positive_float(text):
@@ -240,26 +243,15 @@ def _bars(quiet):
 
 
 def _reconstruct(a):
-    from .pipeline import reconstruct, summary_table, write_outputs
+    from .pipeline import summary_table, write_outputs
     from .preflight import atomic_output_dir, check_output_dir, parse_memory
 
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
-    rec = reconstruct(
-        a.session,
-        voxel_size=a.voxel_size,
-        threshold=a.threshold,
-        method=a.method,
-        hull=a.hull,
-        color_threshold=a.color_threshold,
-        tolerance=a.tolerance,
-        calibration=a.calibration,
-        recalibrate=a.recalibrate,
-        progress=_bars(a.quiet),
-        max_memory=max_memory,
-        finish=not a.raw_surface,
-        measure=True if a.measure else None,
-    )
+    try:
+        rec = _run_reconstruct(a, max_memory)
+    except SettingsError as e:  # the library names its parameter; the user typed a flag
+        raise OrganlabError(e.for_flag(_FLAGS.get(e.parameter, f"--{e.parameter.replace('_', '-')}"))) from None
     with atomic_output_dir(a.out) as tmp:  # an interrupted run leaves the previous result intact
         paths = write_outputs(rec, tmp, atomic=False)
         if a.picture:
@@ -279,6 +271,26 @@ def _reconstruct(a):
     return 0
 
 
+def _run_reconstruct(a, max_memory):
+    from .pipeline import reconstruct
+
+    return reconstruct(
+        a.session,
+        voxel_size=a.voxel_size,
+        threshold=a.threshold,
+        method=a.method,
+        hull=a.hull,
+        color_threshold=a.color_threshold,
+        tolerance=a.tolerance,
+        calibration=a.calibration,
+        recalibrate=a.recalibrate,
+        progress=_bars(a.quiet),
+        max_memory=max_memory,
+        finish=not a.raw_surface,
+        measure=True if a.measure else None,
+    )
+
+
 def _pictures(rec, folder, voxel_size):
     from .agreement import model_mask
     from .figures import agreement_chart, agreement_overlay, mesh_snapshot
@@ -289,7 +301,7 @@ def _pictures(rec, folder, voxel_size):
     out = {"picture": mesh_snapshot(rec.mesh, folder / "mesh.png", title=title)}
     if rec.report.get("agreement"):
         out["agreement"] = agreement_chart(rec.report, folder / "agreement.png")
-        worst = max(range(len(rec.cameras)), key=lambda i: rec.report["views"][i]["agreement"]["disagreement"])
+        worst = rec.agreement.worst  # the one ranking (organlab.engine.AgreementFigures)
         sil = rec.silhouettes[worst].coverage >= 0.5
         view = rec.session.views[worst]
         a = rec.report["views"][worst]["agreement"]

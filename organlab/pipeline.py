@@ -1,7 +1,8 @@
 """The whole pipeline: a session folder in, a measured mesh out.
 
-:func:`reconstruct` is exactly the stage functions in sequence (what a notebook
-writes by hand), plus progress bars and timings::
+:func:`reconstruct` is one run of :class:`organlab.engine.Engine`, the stage
+functions in sequence (what a notebook writes by hand), plus progress bars
+and timings::
 
     cal, how = calibration_for(session)        # organlab.calibration
     cameras = cal.cameras(session)
@@ -13,30 +14,24 @@ writes by hand), plus progress bars and timings::
     measure(mesh)
 
 :func:`write_outputs` writes the files that ``docs/session-format.md``
-specifies.  The CLI only calls these two.
+specifies (:meth:`Reconstruction.save`).  The CLI only calls these two.
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-import numpy as np
+from .calibration import calibration_for
+from .engine import HULL_METHODS, METHODS, AgreementFigures, Engine, Reconstruction, Settings, pixel_footprint
+from .session import Session, load_session
 
-from . import __version__
-from ._progress import NullProgress
-from .errors import SessionError
-from .grid import VoxelGrid
-from .session import Session, load_session, write_json
-
-__all__ = ["Reconstruction", "session_cameras", "reconstruct", "write_outputs", "summary_table", "HULL_METHODS", "METHODS"]
-
-HULL_METHODS = ("subvoxel", "thesis")
-METHODS = ("hull", "coloring", "space_carving")
+__all__ = ["Reconstruction", "Settings", "session_cameras", "reconstruct", "write_outputs", "summary_table",
+           "pixel_footprint", "HULL_METHODS", "METHODS"]
 
 
-def session_cameras(session, calibration=None):
+def session_cameras(session: Session | str | Path, calibration: Any = None) -> list:
     """The camera of every view of a session.
 
     Parameters
@@ -51,151 +46,31 @@ def session_cameras(session, calibration=None):
     -------
     list of Camera, one per view
     """
-    from .calibration import calibration_for
-
     if not isinstance(session, Session):
         session = load_session(session)
     return calibration_for(session, calibration=calibration)[0].cameras(session)
 
 
-@dataclass
-class Reconstruction:
-    """Everything :func:`reconstruct` computed.
-
-    Attributes
-    ----------
-    session : Session
-    grid : VoxelGrid
-    occupancy : (nx, ny, nz) bool
-        The carved voxel model.
-    mesh : organlab.surface.Mesh
-    cameras : list of Camera
-    silhouettes : list of organlab.silhouette.Silhouette
-    report : dict
-        The content of ``report.json``.
-    field : organlab.carving.BandField or None
-        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``),
-        stored in a narrow band; ``np.asarray(field)`` is the dense
-        ``(nx, ny, nz)`` float32 field.
-    colors : (nx, ny, nz, 3) uint8 or None
-        Voxel colours (``method='coloring'``).
-    calibration : organlab.calibration.Calibration
-        The calibration used.
-    """
-
-    session: Session
-    grid: VoxelGrid
-    occupancy: np.ndarray
-    mesh: object
-    cameras: list
-    silhouettes: list
-    report: dict
-    field: np.ndarray | None = None
-    colors: np.ndarray | None = None
-    calibration: object = None
-    raw_mesh: object = None  # the marching-cubes mesh before organlab.surface.finish_surface
-    aaa: object = None  # organlab.surface.AAAMeasures when measured
-
-
-class _Stages:
-    """Per-stage progress bars and timings."""
-
-    def __init__(self, progress):
-        self.progress = progress or (lambda stage: NullProgress())
-        self.timings = {}
-
-    def run(self, name, fn, *args, **kwargs):
-        """``fn(*args, progress=bar, **kwargs)``, timed as stage ``name``."""
-        bar = self.progress(name)
-        t0 = time.perf_counter()
-        out = fn(*args, progress=bar, **kwargs)
-        self.timings[name] = time.perf_counter() - t0
-        bar.close()
-        return out
-
-
-def _check_options(session, voxel_size, threshold, method, hull):
-    from .preflight import check_voxel_size
-
-    check_voxel_size(voxel_size)  # finite and > 0
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if hull not in HULL_METHODS:
-        raise ValueError(f"hull must be one of {HULL_METHODS}, got {hull!r}")
-    if threshold is not None and not (np.isfinite(threshold) and threshold > 0):
-        raise SessionError(f"--threshold must be a finite number of grey levels > 0, got {threshold}")
-    if not session.views:
-        raise SessionError(f"{session.json_path}: views: the session has no views to reconstruct (calibration-only session)")
-
-
-def _calibration_stage(stages, session, calibration, recalibrate):
-    """The calibration to use; timed (and a bar shown) only when one is computed."""
-    from .calibration import calibration_for
-
-    bar = None
-
-    def progress(done, total):
-        nonlocal bar
-        bar = bar or stages.progress("calibration")
-        bar(done, total)
-
-    t0 = time.perf_counter()
-    cal, how = calibration_for(session, calibration=calibration, recalibrate=recalibrate, progress=progress)
-    if how == "computed" or how.startswith("recomputed"):
-        stages.timings["calibration"] = time.perf_counter() - t0
-    if bar is not None:
-        bar.close()
-    return cal, how
-
-
-def _carve(sils, cameras, grid, *, hull, tolerance, progress):
-    from .carving import carve, hull_field
-
-    if hull == "thesis":
-        occupancy, field = carve(sils, cameras, grid, tolerance=tolerance), None
-    else:  # the field in a narrow band about the surface: cost grows with the surface, not the volume
-        field = hull_field(sils, cameras, grid, tolerance=tolerance, progress=progress, sparse=True)
-        occupancy = field.occupancy()
-    progress(len(cameras), len(cameras))
-    return occupancy, field
-
-
-def _surface(session, occupancy, field, colors, colored, grid, *, finish, measure, progress, cameras=None):
-    """Marching cubes (raw mesh), then the finished surface and the AAA measures (:func:`_finish_and_measure`)."""
-    from .surface import color_vertices, mesh_from_field
-
-    # after colouring, the surface is the coloured voxel model's: the hull field knows
-    # nothing of the voxels colouring carved, and setting them outside in the field
-    # moved the surface inward by up to a voxel wherever colouring carved a surface voxel
-    surface_of = occupancy if (colors is not None or field is None) else field
-    raw = mesh_from_field(surface_of, grid)
-    if colors is not None:
-        raw = color_vertices(raw, colors, colored, grid)
-    footprint = None if not cameras else pixel_footprint(cameras, grid)
-    mesh, aaa, extra = _finish_and_measure(session, raw, surface_of, grid, finish, measure, footprint)
-    progress(1, 1)
-    return raw, mesh, aaa, extra
-
-
 def reconstruct(
-    session,
+    session: Session | str | Path,
     *,
-    voxel_size=1.0,
-    threshold=None,
-    method="hull",
-    hull="subvoxel",
-    color_threshold=None,
-    tolerance=0,
-    calibration=None,
-    recalibrate=False,
-    progress=None,
-    max_memory=None,
-    finish=True,
-    measure=None,
-):
+    voxel_size: float = 1.0,
+    threshold: float | None = None,
+    method: str = "hull",
+    hull: str = "subvoxel",
+    color_threshold: float | None = None,
+    tolerance: int = 0,
+    calibration: Any = None,
+    recalibrate: bool = False,
+    progress: Callable[[str], Any] | None = None,
+    max_memory: int | None = None,
+    finish: bool = True,
+    measure: bool | None = None,
+) -> Reconstruction:
     """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
 
     Nothing is written, into the session or elsewhere: see :func:`write_outputs`.
+    One run of :class:`organlab.engine.Engine` with these :class:`organlab.engine.Settings`.
 
     Parameters
     ----------
@@ -245,184 +120,25 @@ def reconstruct(
     Returns
     -------
     Reconstruction
+
+    Raises
+    ------
+    organlab.engine.SettingsError
+        A setting out of range, named as the parameter above.
     """
-    from .silhouette import silhouettes
-
-    if not isinstance(session, Session):
-        session = load_session(session)
-    _check_options(session, voxel_size, threshold, method, hull)
-    stages = _Stages(progress)
-
-    _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory)
-    cal, how = _calibration_stage(stages, session, calibration, recalibrate)
-    cameras = cal.cameras(session)
-    images = session.images()  # read once: colouring needs the same images
-    sils = stages.run("silhouettes", silhouettes, session, images=images, threshold=threshold)
-    grid = VoxelGrid.from_session(session, voxel_size)
-    occupancy, field = stages.run("carving", _carve, sils, cameras, grid, hull=hull, tolerance=tolerance)
-    if not occupancy.any():
-        raise SessionError(
-            f"{session.json_path}: carving left no voxel: the silhouettes do not agree with the cameras "
-            "(check the calibration, the roi and the threshold)"
-        )
-    colors = colored = coloring_info = None
-    if method != "hull":
-        from .coloring import report_entry
-
-        res = stages.run("coloring", _color, images, cameras, occupancy, grid, sils, method, color_threshold)
-        coloring_info = report_entry(res, occupancy, grid)
-        occupancy, colors, colored = res.occupancy, res.colors, res.colored
-    raw_mesh, mesh, aaa, extra = stages.run("surface", _surface, session, occupancy, field, colors, colored, grid,
-                                            finish=finish, measure=measure, cameras=cameras)
-    report = _report(session, grid, occupancy, mesh, cameras, cal, how, sils, stages.timings, method, hull)
-    report.update(extra)
-    if coloring_info is not None:
-        report["coloring"] = coloring_info
-    _add_checks(report, session, grid, mesh, cameras, sils, cal)
-    return Reconstruction(session, grid, occupancy, mesh, cameras, sils, report, field, colors, cal, raw_mesh, aaa)
+    settings = Settings(voxel_size=voxel_size, threshold=threshold, method=method, hull=hull,
+                        color_threshold=color_threshold, tolerance=tolerance, finish=finish, measure=measure)
+    settings.validate()  # before the session is read
+    engine = Engine(session, calibration=calibration, recalibrate=recalibrate, max_memory=max_memory)
+    return engine.run(settings, progress=progress)
 
 
-def pixel_footprint(cameras, grid):
-    """Median size of a pixel at the centre of the voxel space over the views, mm.
-
-    What the silhouettes resolve at the specimen: the finished surface's edges
-    need not be shorter (``finish_surface(min_edge_mm=...)``).
-    """
-    lo, hi = grid.bounds
-    c = (np.asarray(lo, float) + np.asarray(hi, float)) / 2
-    return float(np.median([cam.pixel_footprint(c) for cam in cameras]))
-
-
-def _finish_and_measure(session, mesh, volume, grid, finish, measure, footprint=None):
-    """The finished surface (issue 9) and, for an AAA session or when asked, the AAA measures.
-
-    ``footprint``: a pixel's size at the specimen, mm (:func:`pixel_footprint`), the
-    remeshing's shortest automatic edge (default ``finish_surface``'s).
-    Returns the surface, the measures (or None) and the report's extra keys.
-    """
-    from .errors import OrganlabError
-    from .surface import finish_surface, is_aaa_session, measure_aaa
-
-    extra, aaa = {"raw_mesh_volume_mm3": mesh.volume}, None
-    if finish:
-        kw = {} if footprint is None else {"min_edge_mm": footprint}
-        mesh, extra["surface"] = finish_surface(mesh, voxel_size=grid.voxel_size, **kw)
-        if footprint is not None:
-            extra["surface"]["pixel_footprint_mm"] = footprint
-    if measure or (measure is None and is_aaa_session(session)):
-        try:
-            aaa = measure_aaa(volume, grid)
-            extra["aaa"] = aaa.summary()
-        except OrganlabError as e:
-            if measure:  # asked for: an error; automatic: noted in the report
-                raise
-            extra["aaa_error"] = str(e)
-    return mesh, aaa, extra
-
-
-def _preflight(session, voxel_size, color_threshold, method, tolerance, max_memory):
-    """Before the long work: the grid's memory (organlab.preflight), a finite colour threshold."""
-    from .preflight import check_grid_memory
-
-    if color_threshold is not None and not (np.isfinite(color_threshold) and color_threshold > 0):
-        raise SessionError(f"--color-threshold must be a finite number of grey levels > 0, got {color_threshold}")
-    check_grid_memory(session.roi_min, session.roi_max, voxel_size, max_memory=max_memory, method=method,
-                      tolerance=tolerance if isinstance(tolerance, int) else 0, where=str(session.json_path))
-
-
-def _angle_suggestions(session, grid, sils, cal, agr, names):
-    """For a few flagged views whose poses come from their table angles: the angle each agrees best at."""
-    from .agreement import _MANY, suggest_angles
-
-    bad = [i for i, v in enumerate(agr.views) if not v["ok"]]
-    table = None if cal is None or cal.turntable is None else cal.turntable.camera
-    if not bad or table is None or len(bad) > _MANY * len(agr.views) or any(session.views[i].pose is not None for i in bad):
-        return {}
-    return suggest_angles(table, [v.angle_deg for v in session.views], sils, bad, grid, names=names)
-
-
-def _add_checks(report, session, grid, mesh, cameras, sils, cal):
-    """Trust checks into the report (issue 15): view agreement, what loading corrected."""
-    from .agreement import suggestion_text, view_agreement
-
-    names = [session.relpath(v.image) for v in session.views]
-    agr = view_agreement(mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
-    for row, a in zip(report["views"], agr.views):
-        row["agreement"] = a
-    report["agreement"] = {"limit": agr.limit, "worst_views": [names[i] for i in agr.worst[:3]]}
-    warnings = list(agr.warnings)
-    suggested = _angle_suggestions(session, grid, sils, cal, agr, names)
-    if suggested:
-        report["agreement"]["suggested_angles"] = suggested
-        text = suggestion_text(suggested)
-        if text and warnings:
-            warnings[0] += f"; {text}"
-    report.setdefault("warnings", []).extend(warnings)
-    if getattr(session, "notes", ()):
-        report["notes"] = list(session.notes)  # re-orthonormalised rotations
-    # calibration images not used, and why (no board found, board moved)
-    for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
-        if fit is not None:
-            report["calibration"][f"{what}_rejected"] = dict(fit.rejected)
-    if cal.turntable is not None:
-        report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
-    report["warnings"].extend(cal.warnings())
-
-
-def _color(images, cameras, occupancy, grid, sils, method, color_threshold, *, progress):
-    from .coloring import PIPELINE_OPTIONS, color_voxels
-
-    kind = "voxel_coloring" if method == "coloring" else "space_carving"
-    return color_voxels(images, cameras, occupancy, grid, method=kind, masks=[s.mask for s in sils], progress=progress,
-                        threshold="auto" if color_threshold is None else color_threshold, **PIPELINE_OPTIONS)
-
-
-
-def _report(session, grid, occupancy, mesh, cameras, cal, how, sils, timings, method, hull):
-    from .surface import measure
-
-    volume = grid.volume_of(occupancy)
-    m = measure(mesh)
-    cam0 = cameras[0]
-    camera = {"K": cam0.K.tolist(), "dist": cam0.dist.tolist(), "image_size": list(cam0.image_size)}
-    if cal.rms_px is not None:
-        camera["rms_px"] = cal.rms_px
-    r = {
-        "organlab_version": __version__,
-        "session": session.name,
-        "method": method,
-        "hull": hull,
-        "volume_mm3": volume,
-        "mesh_volume_mm3": m["volume_mm3"],
-        "mesh_area_mm2": m["area_mm2"],
-        "watertight": m["watertight"],
-        "voxel_size_mm": grid.voxel_size,
-        "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape), "occupied_voxels": int(occupancy.sum())},
-        "timings_s": {k: round(v, 4) for k, v in timings.items()},
-        "calibration": {"source": how, "rms_px": cal.rms_px, "turntable_rms_px": cal.turntable_rms_px},
-        "views": [
-            {"image": session.relpath(v.image), "angle_deg": v.angle_deg, "R": c.R.tolist(), "t": c.t.tolist(),
-             "silhouette_threshold": s.threshold, "silhouette_source": s.source,
-             **({"silhouette_key": s.info} if getattr(s, "info", None) else {})}
-            for v, c, s in zip(session.views, cameras, sils)
-        ],
-        "camera": camera,
-    }
-    if cal.turntable_rms_px is not None:
-        r["turntable_rms_px"] = cal.turntable_rms_px
-    ref = session.reference.get("volume_mm3")
-    if ref:
-        r["reference"] = dict(session.reference)
-        r["volume_error_pct"] = 100.0 * (volume - ref) / ref
-        r["mesh_volume_error_pct"] = 100.0 * (m["volume_mm3"] - ref) / ref
-    return r
-
-
-def write_outputs(rec, out_dir, *, atomic=True):
+def write_outputs(rec: Reconstruction, out_dir: str | Path, *, atomic: bool = True) -> dict:
     """Write ``report.json``, ``voxels.npz``, ``mesh.ply``, ``mesh.stl`` (and ``calibration.json``).
 
-    ``calibration.json`` is the calibration used, when it was fitted from
-    board images (not when ``session.json`` gave the camera and every pose).
+    :meth:`Reconstruction.save`.  ``calibration.json`` is the calibration
+    used, when it was fitted from board images (not when ``session.json``
+    gave the camera and every pose).
 
     Parameters
     ----------
@@ -441,37 +157,7 @@ def write_outputs(rec, out_dir, *, atomic=True):
     -------
     dict of str -> Path
     """
-    if atomic:
-        from .preflight import atomic_output_dir
-
-        with atomic_output_dir(out_dir) as tmp:
-            paths = write_outputs(rec, tmp, atomic=False)
-        return {k: Path(out_dir) / p.name for k, p in paths.items()}
-    from .carving import BandField
-    from .surface import write_ply, write_stl
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {k: out / n for k, n in (("report", "report.json"), ("voxels", "voxels.npz"), ("ply", "mesh.ply"), ("stl", "mesh.stl"))}
-    arrays = {
-        "occupancy": np.ascontiguousarray(rec.occupancy, dtype=bool),
-        "origin_mm": np.asarray(rec.grid.origin, dtype=np.float64),
-        "voxel_size_mm": np.float64(rec.grid.voxel_size),
-    }
-    if rec.colors is not None:
-        arrays["colors"] = rec.colors
-    if isinstance(rec.field, BandField):  # the band only: the file grows with the surface, not the volume
-        arrays.update(rec.field.to_arrays(prefix="field_"))
-    elif rec.field is not None:  # a dense field (hull_field(sparse=False)) as earlier versions stored it
-        arrays["field"] = np.asarray(rec.field, dtype=np.float32)
-    np.savez_compressed(paths["voxels"], **arrays)
-    write_ply(paths["ply"], rec.mesh)
-    write_stl(paths["stl"], rec.mesh)
-    write_json(paths["report"], rec.report)
-    cal = rec.calibration
-    if cal is not None and (cal.intrinsics is not None or cal.turntable is not None):
-        paths["calibration"] = cal.save(out / "calibration.json")
-    return paths
+    return rec.save(out_dir, atomic=atomic)
 
 
 def summary_table(report):
@@ -501,10 +187,11 @@ def summary_table(report):
         rows.append(("calib. RMS", f"{report['camera']['rms_px']:.3f} px"))
     if "turntable_rms_px" in report:
         rows.append(("turntable RMS", f"{report['turntable_rms_px']:.3f} px"))
-    if report.get("agreement"):
-        worst = [(r["image"], r["agreement"]) for r in report["views"] if r["image"] in report["agreement"]["worst_views"]]
-        worst.sort(key=lambda x: -x[1]["disagreement"])
-        rows.append(("worst views", ", ".join(f"{n} (IoU {a['iou']:.3f}, {100 * a['disagreement']:.2f} % unexplained)" for n, a in worst[:2])))
+    figures = AgreementFigures.from_report(report)
+    if figures is not None:  # the figures and the ranking the viewer shows (organlab.engine.AgreementFigures)
+        rows.append(("agreement", f"mean IoU {figures.mean_iou:.3f} over {len(figures.iou)} views"))
+        rows.append(("worst views", ", ".join(f"{figures.names[i]} ({100 * figures.disagreement[i]:.2f} % unexplained, "
+                                              f"IoU {figures.iou[i]:.3f})" for i in figures.ranking[:2])))
     for k, v in report["timings_s"].items():
         rows.append((f"time {k}", f"{v:.2f} s"))
     w = max(len(k) for k, _ in rows)

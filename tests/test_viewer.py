@@ -161,7 +161,7 @@ def test_agreement_drops_for_a_wrong_camera(app):
     res = app.result
     cams = list(app.cameras)
     cams[0] = cams[6]  # view 0 paired with the camera of another view
-    ag = np.array([v["iou"] for v in view_agreement(res.mesh, cams, res.masks, voxel_size=2.0).views])
+    ag = np.array([v["iou"] for v in view_agreement(res.mesh, cams, res.reconstruction.silhouettes, voxel_size=2.0).views])
     assert ag[0] < res.agreement[0] - 0.05
     np.testing.assert_allclose(ag[1:], res.agreement[1:])
 
@@ -404,6 +404,6 @@ def test_border_backdrop_estimated_over_every_view(sample, tmp_path):
                   {"color": "border"})
     v = _keyed_viewer(s, list(range(0, 36, 3)))
     try:
-        np.testing.assert_allclose(v._model.background, SilhouetteModel.from_session(s).background)
+        np.testing.assert_allclose(v.engine.silhouette_model.background, SilhouetteModel.from_session(s).background)
     finally:
         v.stop()

@@ -238,10 +238,11 @@ class Controls:
                          f"sac {a.sac_length_mm:.0f} mm, {a.sac_volume_mm3 / 1000:.1f} cm³")
         elif res.aaa_error is not None:
             lines.append(f"**AAA** not measured: {res.aaa_error}")
-        if ag is not None and len(ag):
-            worst = int(np.argmin(ag))
-            lines.append(f"**Agreement** (IoU) mean {ag.mean():.3f}, worst view {self.app.view_ids[worst]}: {ag[worst]:.3f}")
-            lines.append("<br/>" + " ".join(f"`{self.app.view_ids[j]}:{a:.2f}`" for j, a in enumerate(ag)))
+        fig = res.figures
+        if fig is not None and len(fig.iou):  # the figures and ranking of report.json and the CLI summary
+            ids = self.app.view_ids
+            lines.append("**Agreement** " + fig.line(lambda j: f"{ids[j]} ({fig.names[j]})"))
+            lines.append("<br/>" + " ".join(f"`{ids[j]}:{a:.2f}`" for j, a in enumerate(ag)))
         if res.color_threshold is not None:
             lines.append(f"**Colour threshold** {res.color_threshold:.1f}"
                          + (" (automatic)" if res.settings.color_threshold is None else ""))

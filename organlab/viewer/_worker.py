@@ -5,9 +5,9 @@ from __future__ import annotations
 import threading
 import traceback
 
+from ..engine import Cancelled  # raised inside a job (by check(), or by the engine's cancel) when a newer request arrived
 
-class Cancelled(Exception):
-    """Raised inside a job when a newer request arrived."""
+__all__ = ["Cancelled", "LatestWorker"]
 
 
 class LatestWorker:
@@ -39,8 +39,13 @@ class LatestWorker:
             self._cv.notify_all()
             return self.generation
 
-    def check(self, generation):
-        if self._stop or generation != self.generation:
+    def stale(self, generation: int) -> bool:
+        """Whether a newer request arrived (or the worker stops): the engine's ``cancel()`` of a job."""
+        return self._stop or generation != self.generation
+
+    def check(self, generation: int) -> None:
+        """Raise :class:`Cancelled` when :meth:`stale`."""
+        if self.stale(generation):
             raise Cancelled
 
     def wait(self, generation=None, timeout=60.0):

@@ -1,0 +1,1012 @@
+"""The one engine that runs the stages: a session and typed settings in, a reconstruction out.
+
+Every face calls it: :func:`organlab.pipeline.reconstruct` (the CLI and the
+notebooks), the live viewer (:class:`organlab.viewer.SessionViewer`), the
+carving tuner widget and batch sweeps.  The stage sequence exists here once::
+
+    calibration -> silhouettes -> carving -> coloring -> surface -> checks
+
+An :class:`Engine` keeps the result of every stage with the settings it was
+computed from, and a new :meth:`Engine.run` re-runs a stage only when a
+setting it depends on (:data:`DEPENDS`), or an earlier stage, changed: a new
+threshold re-runs the silhouettes and what follows, never the calibration; a
+new voxel size keeps the calibration and the silhouettes.
+
+Examples
+--------
+>>> from organlab.engine import Engine, Settings
+>>> eng = Engine("sample_sessions/aaa_phantom", views=range(0, 36, 6))
+>>> rec = eng.run(Settings(voxel_size=4.0, finish=False), until="carving")
+>>> rec.occupancy.any(), rec.mesh is None
+(True, True)
+>>> eng.run(Settings(voxel_size=4.0, finish=False, threshold=20.0), until="carving").report is None
+True
+>>> eng.computed["calibration"], eng.computed["silhouettes"]   # runs of each stage so far
+(1, 2)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from ._progress import NullProgress
+from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement
+from .calibration import calibration_for
+from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
+from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
+from .errors import OrganlabError, SessionError, SettingsError
+from .grid import VoxelGrid
+from .preflight import atomic_output_dir, check_grid_memory
+from .session import Session, load_session, write_json
+from .silhouette import Silhouette, SilhouetteModel
+from . import surface  # its writers through the module (tests replace them to interrupt a write)
+from .surface import (color_vertices, finish_surface, is_aaa_session, load_voxels, measure, measure_aaa, mesh_from_field,
+                      read_ply)
+
+__all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
+           "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
+           "ChecksStage", "run", "pixel_footprint"]
+
+METHODS = ("hull", "coloring", "space_carving")
+HULL_METHODS = ("subvoxel", "thesis")
+
+
+class Cancelled(Exception):
+    """Raised by :meth:`Engine.run` when its ``cancel()`` returned True (a newer request arrived)."""
+
+
+def _finite_positive(value: Any) -> bool:
+    return (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+            and math.isfinite(value) and value > 0)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything a reconstruction depends on, besides the session and its calibration.
+
+    One typed object for the CLI, the viewer, the widgets and batch work.
+    :meth:`validate` raises :class:`SettingsError` naming the field.
+
+    Attributes
+    ----------
+    voxel_size : float, mm
+    threshold : float or None
+        Silhouette threshold for every view, grey levels (background
+        subtraction) or Delta E (a session keyed against a ``backdrop``);
+        None = automatic per view.
+    method : {'hull', 'coloring', 'space_carving'}
+    hull : {'subvoxel', 'thesis'}
+    color_threshold : float or None
+        Photo-consistency threshold, grey levels; None = automatic.
+    tolerance : int
+        Views allowed to disagree before a voxel is carved.
+    finish : bool
+        Repair, smooth and remesh the marching-cubes surface.
+    measure : bool or None
+        AAA measures; None = when the session's specimen is an AAA.
+    roi : ((3,), (3,)) tuple of float, mm, or None
+        The box carved, world frame; None = the session's ``roi``.
+
+    Examples
+    --------
+    >>> s = Settings(voxel_size=2.0).replace(threshold=20.0)
+    >>> Settings.from_dict(s.to_dict()) == s
+    True
+    >>> Settings(threshold=-1).validate()
+    Traceback (most recent call last):
+    ...
+    organlab.engine.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
+    """
+
+    voxel_size: float = 1.0
+    threshold: float | None = None
+    method: str = "hull"
+    hull: str = "subvoxel"
+    color_threshold: float | None = None
+    tolerance: int = 0
+    finish: bool = True
+    measure: bool | None = None
+    roi: tuple | None = None
+    # (the poses helper adds  refine_poses: str = "auto"  here, and its stage in DEPENDS)
+
+    def replace(self, **changes: Any) -> Settings:
+        """A copy with some fields changed (validated)."""
+        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise SettingsError(sorted(unknown)[0], f"is not a setting; settings are {[f.name for f in dataclasses.fields(self)]}")
+        return dataclasses.replace(self, **changes).validate()
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able values (roi as two lists)."""
+        d = dataclasses.asdict(self)
+        if self.roi is not None:
+            d["roi"] = [list(map(float, self.roi[0])), list(map(float, self.roi[1]))]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Settings:
+        """Settings from :meth:`to_dict`'s form, validated; unknown keys are refused."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise SettingsError(sorted(unknown)[0], f"is not a setting; settings are {sorted(names)}")
+        d = dict(d)
+        if d.get("roi") is not None:
+            try:
+                d["roi"] = (tuple(float(v) for v in d["roi"][0]), tuple(float(v) for v in d["roi"][1]))
+            except (TypeError, ValueError, IndexError):
+                raise SettingsError("roi", f"must be two points (3 numbers each, mm), got {d['roi']!r}") from None
+        return cls(**d).validate()
+
+    def validate(self) -> Settings:
+        """Check every field; returns ``self`` (raises :class:`SettingsError` naming the field)."""
+        if not _finite_positive(self.voxel_size):
+            raise SettingsError("voxel_size", f"must be a finite number of mm > 0, got {self.voxel_size!r}")
+        if self.threshold is not None and not _finite_positive(self.threshold):
+            raise SettingsError("threshold", "must be a finite number > 0 (grey levels, or Delta E for a backdrop "
+                                f"session), got {self.threshold!r}")
+        if self.method not in METHODS:
+            raise SettingsError("method", f"must be one of {METHODS}, got {self.method!r}")
+        if self.hull not in HULL_METHODS:
+            raise SettingsError("hull", f"must be one of {HULL_METHODS}, got {self.hull!r}")
+        if self.color_threshold is not None and not _finite_positive(self.color_threshold):
+            raise SettingsError("color_threshold", f"must be a finite number of grey levels > 0, got {self.color_threshold!r}")
+        if isinstance(self.tolerance, bool) or not isinstance(self.tolerance, (int, np.integer)) or self.tolerance < 0:
+            raise SettingsError("tolerance", f"must be an integer >= 0 (views), got {self.tolerance!r}")
+        if not isinstance(self.finish, (bool, np.bool_)):
+            raise SettingsError("finish", f"must be True or False, got {self.finish!r}")
+        if self.measure is not None and not isinstance(self.measure, (bool, np.bool_)):
+            raise SettingsError("measure", f"must be True, False or None (when the session is an AAA), got {self.measure!r}")
+        if self.roi is not None:
+            try:
+                lo, hi = (np.asarray(v, dtype=np.float64) for v in self.roi)
+                ok = lo.shape == hi.shape == (3,) and np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise SettingsError("roi", f"must be (min, max), 3 finite numbers each in mm, max > min, got {self.roi!r}")
+        return self
+
+
+#: The Settings fields each stage depends on, in the order the stages run.  A change
+#: re-runs that stage and every stage after it; the earlier ones are kept.
+DEPENDS: dict[str, tuple[str, ...]] = {
+    "calibration": (),  # the Engine's calibration= / recalibrate= (fixed for an Engine)
+    "silhouettes": ("threshold",),
+    # "poses": ("refine_poses",),  # pose refinement goes here: after the silhouettes, before carving
+    "carving": ("voxel_size", "roi", "hull", "tolerance"),
+    "coloring": ("method", "color_threshold"),
+    "surface": ("finish", "measure"),
+    "checks": (),
+}
+
+#: The stages, in the order they run.
+STAGES: tuple[str, ...] = tuple(DEPENDS)
+
+
+# ---------------------------------------------------------------- typed stage results
+@dataclass(frozen=True)
+class CalibrationStage:
+    """The calibration used and the camera of every view.
+
+    Attributes
+    ----------
+    calibration : organlab.calibration.Calibration
+    how : str
+        As :func:`organlab.calibration.calibration_for` says it was obtained.
+    cameras : list of Camera, one per view
+    seconds : float or None
+        Time spent when a calibration was computed (None when reused or given).
+    """
+
+    calibration: Any
+    how: str
+    cameras: list
+    seconds: float | None = None
+
+
+@dataclass(frozen=True)
+class CarvingStage:
+    """The carved voxel model.
+
+    Attributes
+    ----------
+    grid : VoxelGrid
+    occupancy : (nx, ny, nz) bool
+    field : organlab.carving.BandField or None
+        The sub-voxel hull field (``hull='subvoxel'``).
+    """
+
+    grid: VoxelGrid
+    occupancy: np.ndarray
+    field: Any = None
+
+
+@dataclass(frozen=True)
+class ColoringStage:
+    """What voxel colouring kept (``method`` other than ``'hull'``).
+
+    Attributes
+    ----------
+    occupancy : (nx, ny, nz) bool
+    colors : (nx, ny, nz, 3) uint8
+    colored : (nx, ny, nz) bool
+    threshold : float
+        The threshold used (the measured one when automatic).
+    info : dict
+        The report's ``coloring`` entry (:func:`organlab.coloring.report_entry`).
+    """
+
+    occupancy: np.ndarray
+    colors: np.ndarray
+    colored: np.ndarray
+    threshold: float
+    info: dict
+
+
+@dataclass(frozen=True)
+class SurfaceStage:
+    """The surface and the measures.
+
+    Attributes
+    ----------
+    raw_mesh : Mesh
+        Marching cubes of the field (or of the coloured occupancy).
+    mesh : Mesh
+        The finished surface (``raw_mesh`` when ``finish`` is off).
+    steps : dict or None
+        :func:`organlab.surface.finish_surface`'s report, with ``pixel_footprint_mm``.
+    aaa : organlab.surface.AAAMeasures or None
+    aaa_error : str or None
+        Why an AAA session was not measured.
+    """
+
+    raw_mesh: Any
+    mesh: Any
+    steps: dict | None = None
+    aaa: Any = None
+    aaa_error: str | None = None
+
+    def to_dict(self) -> dict:
+        """The report's keys of this stage."""
+        d: dict = {"raw_mesh_volume_mm3": self.raw_mesh.volume}
+        if self.steps is not None:
+            d["surface"] = self.steps
+        if self.aaa is not None:
+            d["aaa"] = self.aaa.summary()
+        if self.aaa_error is not None:
+            d["aaa_error"] = self.aaa_error
+        return d
+
+
+@dataclass(frozen=True)
+class AgreementFigures:
+    """The agreement figures every face shows: one mean, one ranking.
+
+    The views are ranked by :attr:`ViewAgreement.worst` (the largest fraction of
+    the silhouette left unexplained first: the figure whose limit flags a view),
+    and the report, the CLI summary and the viewer panel all read this object.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The views' image names.
+    iou : tuple of float
+        IoU of each view's silhouette with the model's projection.
+    disagreement : tuple of float
+        Fraction of each silhouette unexplained beyond the outline tolerance.
+    ranking : tuple of int
+        View indices, worst first.
+    mean_iou : float
+    """
+
+    names: tuple
+    iou: tuple
+    disagreement: tuple
+    ranking: tuple
+    mean_iou: float
+
+    @classmethod
+    def from_agreement(cls, agr: ViewAgreement, names: Sequence[str]) -> AgreementFigures:
+        iou = tuple(float(v["iou"]) for v in agr.views)
+        return cls(tuple(names), iou, tuple(float(v["disagreement"]) for v in agr.views), tuple(int(i) for i in agr.worst),
+                   float(np.mean(iou)) if iou else float("nan"))
+
+    @classmethod
+    def from_report(cls, report: dict) -> AgreementFigures | None:
+        """The figures of a ``report.json`` (None when it has no agreement)."""
+        rows = report.get("views", [])
+        if not report.get("agreement") or not rows or any("agreement" not in r for r in rows):
+            return None
+        names = tuple(r["image"] for r in rows)
+        iou = tuple(float(r["agreement"]["iou"]) for r in rows)
+        dis = tuple(float(r["agreement"]["disagreement"]) for r in rows)
+        # the ranking of view_agreement (stable sort on the disagreement), as the report's worst_views
+        ranking = tuple(sorted(range(len(rows)), key=lambda i: -dis[i]))
+        mean = report["agreement"].get("mean_iou", float(np.mean(iou)))
+        return cls(names, iou, dis, ranking, float(mean))
+
+    def subset(self, indices: Sequence[int]) -> AgreementFigures:
+        """The figures of some views only (in this order), ranked the same way."""
+        idx = [int(i) for i in indices]
+        dis = tuple(self.disagreement[i] for i in idx)
+        iou = tuple(self.iou[i] for i in idx)
+        return AgreementFigures(tuple(self.names[i] for i in idx), iou, dis,
+                                tuple(sorted(range(len(idx)), key=lambda k: -dis[k])), float(np.mean(iou)))
+
+    @property
+    def worst(self) -> int:
+        """Index of the worst view."""
+        return self.ranking[0]
+
+    def line(self, label: Callable[[int], str] | None = None) -> str:
+        """``mean IoU 0.990, worst view NAME: 0.21 % unexplained (IoU 0.987)``."""
+        w = self.worst
+        name = self.names[w] if label is None else label(w)
+        return (f"mean IoU {self.mean_iou:.3f}, worst view {name}: {100 * self.disagreement[w]:.2f} % unexplained "
+                f"(IoU {self.iou[w]:.3f})")
+
+    def to_dict(self) -> dict:
+        return {"mean_iou": self.mean_iou, "worst_views": [self.names[i] for i in self.ranking[:3]]}
+
+
+@dataclass(frozen=True)
+class ChecksStage:
+    """The trust checks and the report.
+
+    Attributes
+    ----------
+    agreement : organlab.agreement.ViewAgreement
+    figures : AgreementFigures
+    report : dict
+        The content of ``report.json``.
+    """
+
+    agreement: ViewAgreement
+    figures: AgreementFigures
+    report: dict
+
+
+# ---------------------------------------------------------------- the result
+@dataclass
+class Reconstruction:
+    """Everything a run computed (:meth:`Engine.run`, :func:`organlab.pipeline.reconstruct`).
+
+    Attributes
+    ----------
+    session : Session or None
+        None for a result read back by :meth:`load`.
+    grid : VoxelGrid
+    occupancy : (nx, ny, nz) bool
+        The carved (and coloured) voxel model.
+    mesh : organlab.surface.Mesh or None
+    cameras : list of Camera
+    silhouettes : list of organlab.silhouette.Silhouette
+    report : dict or None
+        The content of ``report.json``.
+    field : organlab.carving.BandField or None
+        Sub-voxel field whose 0.5 level is the surface (``hull='subvoxel'``);
+        ``np.asarray(field)`` is the dense ``(nx, ny, nz)`` float32 field.
+    colors : (nx, ny, nz, 3) uint8 or None
+        Voxel colours (``method='coloring'``).
+    calibration : organlab.calibration.Calibration
+    raw_mesh : Mesh or None
+        The marching-cubes mesh before finishing.
+    aaa : organlab.surface.AAAMeasures or None
+    settings : Settings or None
+    agreement : AgreementFigures or None
+    aaa_error : str or None
+    color_threshold : float or None
+        The colour threshold colouring used.
+    timings : dict of str -> float
+        Seconds per stage run (a kept stage: the time it took when it ran).
+    views : list of int or None
+        The session views reconstructed (None: all of them).
+
+    A run stopped by ``until=`` leaves the fields of the later stages None.
+    """
+
+    session: Any
+    grid: Any
+    occupancy: Any
+    mesh: Any
+    cameras: list
+    silhouettes: list
+    report: dict | None
+    field: Any = None
+    colors: np.ndarray | None = None
+    calibration: Any = None
+    raw_mesh: Any = None
+    aaa: Any = None
+    settings: Settings | None = None
+    agreement: AgreementFigures | None = None
+    aaa_error: str | None = None
+    color_threshold: float | None = None
+    timings: dict = dataclasses.field(default_factory=dict)
+    views: list | None = None
+
+    @property
+    def masks(self) -> list:
+        """The silhouettes' masks, (H, W) bool each."""
+        return [s.mask for s in self.silhouettes]
+
+    def save(self, folder: str | Path, *, atomic: bool = True) -> dict:
+        """Write ``report.json``, ``voxels.npz``, ``mesh.ply``, ``mesh.stl`` (and ``calibration.json``).
+
+        ``calibration.json`` is the calibration used, when it was fitted from
+        board images.  With ``atomic`` the files go into a temporary folder
+        that replaces ``folder`` once all are written
+        (:func:`organlab.preflight.atomic_output_dir`).
+
+        Returns
+        -------
+        dict of str -> Path
+        """
+        if self.report is None or self.mesh is None:
+            raise OrganlabError("an unfinished reconstruction (run with until=) has no report or mesh to save")
+        if atomic:
+            with atomic_output_dir(folder) as tmp:
+                paths = self.save(tmp, atomic=False)
+            return {k: Path(folder) / p.name for k, p in paths.items()}
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {k: out / n for k, n in (("report", "report.json"), ("voxels", "voxels.npz"), ("ply", "mesh.ply"),
+                                         ("stl", "mesh.stl"))}
+        arrays = {
+            "occupancy": np.ascontiguousarray(self.occupancy, dtype=bool),
+            "origin_mm": np.asarray(self.grid.origin, dtype=np.float64),
+            "voxel_size_mm": np.float64(self.grid.voxel_size),
+        }
+        if self.colors is not None:
+            arrays["colors"] = self.colors
+        if isinstance(self.field, BandField):  # the band only: the file grows with the surface, not the volume
+            arrays.update(self.field.to_arrays(prefix="field_"))
+        elif self.field is not None:  # a dense field (hull_field(sparse=False)), as earlier versions stored it
+            arrays["field"] = np.asarray(self.field, dtype=np.float32)
+        np.savez_compressed(paths["voxels"], **arrays)
+        surface.write_ply(paths["ply"], self.mesh)
+        surface.write_stl(paths["stl"], self.mesh)
+        write_json(paths["report"], self.report)
+        cal = self.calibration
+        if cal is not None and (cal.intrinsics is not None or cal.turntable is not None):
+            paths["calibration"] = cal.save(out / "calibration.json")
+        return paths
+
+    @classmethod
+    def load(cls, folder: str | Path, *, session: Session | None = None) -> Reconstruction:
+        """A result folder written by :meth:`save` (``organlab reconstruct --out``) read back.
+
+        The voxels, field and colours from ``voxels.npz``, the mesh from
+        ``mesh.ply``, the report from ``report.json`` (its settings as
+        :attr:`settings`).  Cameras and silhouettes are not stored: empty.
+
+        Raises
+        ------
+        OrganlabError
+            One line naming the missing or unreadable file.
+        """
+        folder = Path(folder)
+        vox, ply, rep = folder / "voxels.npz", folder / "mesh.ply", folder / "report.json"
+        for p in (vox, ply):
+            if not p.is_file():
+                raise OrganlabError(f"{p}: missing; write the folder with 'organlab reconstruct SESSION --out {folder}'")
+        try:
+            with open(vox, "rb") as f, np.load(f, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except Exception as e:  # noqa: BLE001 -- a damaged file: one line naming it
+            raise OrganlabError(f"{vox}: cannot be read ({e}); rewrite it with 'organlab reconstruct'") from None
+        try:
+            occ = arrays["occupancy"].astype(bool)
+            grid = VoxelGrid(tuple(float(v) for v in arrays["origin_mm"]), float(arrays["voxel_size_mm"]), occ.shape)
+        except KeyError as e:
+            raise OrganlabError(f"{vox}: no {e.args[0]!r} array; rewrite it with 'organlab reconstruct'") from None
+        field = None
+        if "field_block" in arrays:
+            field = BandField.from_arrays(arrays, grid, prefix="field_", source=str(vox))
+        elif "field" in arrays:
+            field = arrays["field"]
+        try:
+            report = json.loads(rep.read_text()) if rep.is_file() else {}
+        except (OSError, ValueError) as e:
+            raise OrganlabError(f"{rep}: cannot be read ({e}); rewrite it with 'organlab reconstruct'") from None
+        lo, hi = grid.bounds
+        settings = Settings(voxel_size=grid.voxel_size, method=report.get("method", "hull"),
+                            hull=report.get("hull", "subvoxel"), roi=(tuple(lo), tuple(hi)))
+        coloring = report.get("coloring") or {}
+        return cls(session, grid, occ, read_ply(ply), [], [], report, field, arrays.get("colors"), None,
+                   settings=settings, agreement=AgreementFigures.from_report(report),
+                   color_threshold=coloring.get("threshold"), aaa_error=report.get("aaa_error"))
+
+
+# ---------------------------------------------------------------- the engine
+class _Clock:
+    """Per-stage progress bars (``progress(stage) -> bar``) and the cancel check."""
+
+    def __init__(self, progress, cancel):
+        self.progress = progress or (lambda stage: NullProgress())
+        self.cancel = cancel
+
+    def check(self):
+        if self.cancel is not None and self.cancel():
+            raise Cancelled
+
+    def bar(self, stage):
+        """A ``bar(done, total)`` that also polls ``cancel``; call ``.close()`` after."""
+        inner = self.progress(stage)
+        clock = self
+
+        class Bar:
+            def __call__(self, done, total):
+                clock.check()
+                inner(done, total)
+
+            def close(self):
+                inner.close()
+
+        return Bar()
+
+
+def pixel_footprint(cameras: Sequence, grid: VoxelGrid) -> float:
+    """Median size of a pixel at the centre of the voxel space over the views, mm.
+
+    What the silhouettes resolve at the specimen: the finished surface's edges
+    need not be shorter (``finish_surface(min_edge_mm=...)``).
+    """
+    lo, hi = grid.bounds
+    c = (np.asarray(lo, float) + np.asarray(hi, float)) / 2
+    return float(np.median([cam.pixel_footprint(c) for cam in cameras]))
+
+
+class Engine:
+    """The stages of one session, run on demand and kept for the next run.
+
+    Parameters
+    ----------
+    session : Session or str or Path
+    calibration : Calibration or str or Path, optional
+        Use this calibration (checked against the session) instead of the
+        session's own (:func:`organlab.calibration.calibration_for`).
+    recalibrate : bool
+        Calibrate from the board images even when ``calibration.json`` matches.
+    images : sequence of (H, W, 3) uint8, optional
+        The images of ``views``, already read (read from the session otherwise).
+    views : sequence of int, optional
+        Reconstruct from these views only (default every view), in this order.
+    max_memory : int, optional
+        Bytes the voxel grid may take (default the memory available now;
+        :func:`organlab.preflight.check_grid_memory`).
+
+    Attributes
+    ----------
+    session : Session
+    views : list of int
+    computed : dict of str -> int
+        How many times each stage ran (the rest came from the cache).
+    """
+
+    def __init__(self, session: Session | str | Path, *, calibration: Any = None, recalibrate: bool = False,
+                 images: Sequence[np.ndarray] | None = None, views: Sequence[int] | None = None,
+                 max_memory: int | None = None):
+        self.session = session if isinstance(session, Session) else load_session(session)
+        s = self.session
+        if not s.views:
+            raise SessionError(f"{s.json_path}: views: the session has no views to reconstruct (calibration-only session)")
+        self.views = list(range(len(s.views))) if views is None else [int(i) for i in views]
+        bad = [i for i in self.views if not 0 <= i < len(s.views)]
+        if bad or not self.views:
+            raise SettingsError("views", f"must be indices of the session's {len(s.views)} views, got {list(views)!r}")
+        if images is not None and len(images) != len(self.views):
+            raise SettingsError("images", f"must be one per view: got {len(images)} for {len(self.views)} views")
+        self._calibration = calibration
+        self._recalibrate = bool(recalibrate)
+        self._images = None if images is None else list(images)
+        self.max_memory = max_memory
+        self._model = None
+        self._cache: dict[str, tuple[tuple, Any]] = {}
+        self.computed = {name: 0 for name in STAGES}
+        self.timings: dict[str, float] = {}
+
+    # ------------------------------------------------------------ what does not depend on the settings
+    @property
+    def images(self) -> list:
+        """The views' images, read once (colouring needs them again)."""
+        if self._images is None:
+            s = self.session
+            self._images = [s.read(s.views[i].image, key=f"views[{i}].image") for i in self.views]
+        return self._images
+
+    @property
+    def silhouette_model(self) -> SilhouetteModel:
+        """The views prepared for silhouettes at any threshold (background or backdrop keying), built once."""
+        if self._model is None:
+            self._model = SilhouetteModel.from_session(self.session, images=self.images, views=self.views)
+        return self._model
+
+    @property
+    def names(self) -> list:
+        """The views' image names, relative to the session folder."""
+        return [self.session.relpath(self.session.views[i].image) for i in self.views]
+
+    def cameras(self) -> list:
+        """The camera of every view (the calibration stage, run or kept)."""
+        return self._stage("calibration", Settings(), _Clock(None, None)).cameras
+
+    def roi(self, settings: Settings) -> tuple:
+        """The box carved: ``settings.roi`` or the session's."""
+        if settings.roi is not None:
+            return tuple(tuple(float(v) for v in p) for p in settings.roi)
+        return (tuple(float(v) for v in self.session.roi_min), tuple(float(v) for v in self.session.roi_max))
+
+    def grid(self, settings: Settings) -> VoxelGrid:
+        lo, hi = self.roi(settings)
+        return VoxelGrid.from_roi(lo, hi, settings.voxel_size)
+
+    # ------------------------------------------------------------ running
+    def key(self, stage: str, settings: Settings) -> tuple:
+        """The settings a stage's result depends on, its own and every earlier stage's."""
+        fields = []
+        for name in STAGES:
+            fields += DEPENDS[name]
+            if name == stage:
+                break
+        return tuple((f, _hashable(getattr(settings, f))) for f in fields)
+
+    def cached(self, stage: str, settings: Settings) -> bool:
+        """Whether ``stage``'s result for these settings is kept (a run would not recompute it)."""
+        hit = self._cache.get(stage)
+        return hit is not None and hit[0] == self.key(stage, settings)
+
+    def run(self, settings: Settings | None = None, *, on_stage: Callable[[str, Any], None] | None = None,
+            cancel: Callable[[], bool] | None = None, until: str | None = None,
+            progress: Callable[[str], Any] | None = None) -> Reconstruction:
+        """Run the stages, re-using every kept stage whose inputs did not change.
+
+        Parameters
+        ----------
+        settings : Settings, optional
+            Default ``Settings()``.
+        on_stage : callable(name, result), optional
+            Called after each stage with its typed result (:class:`CalibrationStage`,
+            list of Silhouette, :class:`CarvingStage`, :class:`ColoringStage` or
+            None for ``method='hull'``, :class:`SurfaceStage`, :class:`ChecksStage`);
+            also ``on_stage('mesh', raw_mesh)`` as soon as marching cubes is done,
+            before the surface is finished (the viewer shows it first).
+        cancel : callable() -> bool, optional
+            Polled between stages and inside the long ones; True raises :class:`Cancelled`.
+        until : str, optional
+            Stop after this stage (one of :data:`STAGES`); later fields are None.
+        progress : callable(stage) -> bar, optional
+            Factory of per-stage progress bars (``bar(done, total)``, ``bar.close()``).
+
+        Returns
+        -------
+        Reconstruction
+        """
+        settings = (Settings() if settings is None else settings).validate()
+        if until is not None and until not in STAGES:
+            raise SettingsError("until", f"must be one of {STAGES}, got {until!r}")
+        clock = _Clock(progress, cancel)
+        self._preflight(settings)
+        notify = on_stage or (lambda name, result: None)
+        out = {}
+        for name in STAGES:
+            clock.check()
+            out[name] = self._stage(name, settings, clock, out, notify)
+            notify(name, out[name])
+            if name == until:
+                break
+        return self._reconstruction(settings, out)
+
+    def _preflight(self, settings):
+        s = self.session
+        lo, hi = self.roi(settings)
+        check_grid_memory(lo, hi, settings.voxel_size, max_memory=self.max_memory, method=settings.method,
+                          tolerance=int(settings.tolerance), where=str(s.json_path))
+
+    def _stage(self, name, settings, clock, out=None, notify=None):
+        key = self.key(name, settings)
+        hit = self._cache.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        t0 = time.perf_counter()
+        result = getattr(self, f"_run_{name}")(settings, clock, out or {}, notify or (lambda n, r: None))
+        # done (not cancelled): the kept results after it are stale (their keys hold the old settings)
+        for later in STAGES[STAGES.index(name):]:
+            self._cache.pop(later, None)
+            self.timings.pop(later, None)
+        if name == "calibration":  # timed only when a calibration was computed
+            if result.seconds is not None:
+                self.timings[name] = result.seconds
+        elif result is not None:  # (no colouring for method 'hull': not timed)
+            self.timings[name] = time.perf_counter() - t0
+        self.computed[name] += 1
+        self._cache[name] = (key, result)
+        return result
+
+    # ------------------------------------------------------------ the stages
+    def _run_calibration(self, settings, clock, out, notify):
+        bar = None
+
+        def progress(done, total):
+            nonlocal bar
+            clock.check()
+            bar = bar or clock.progress("calibration")
+            bar(done, total)
+
+        t0 = time.perf_counter()
+        cal, how = calibration_for(self.session, calibration=self._calibration, recalibrate=self._recalibrate,
+                                   progress=progress)
+        seconds = time.perf_counter() - t0 if (how == "computed" or how.startswith("recomputed")) else None
+        if bar is not None:
+            bar.close()
+        every = cal.cameras(self.session)
+        return CalibrationStage(cal, how, [every[i] for i in self.views], seconds)
+
+    def _run_silhouettes(self, settings, clock, out, notify):
+        bar = clock.bar("silhouettes")
+        sils = self.silhouette_model.silhouettes(threshold=settings.threshold, progress=bar)
+        bar.close()
+        return sils
+
+    def _run_carving(self, settings, clock, out, notify):
+        sils, cameras = out["silhouettes"], out["calibration"].cameras
+        grid = self.grid(settings)
+        bar = clock.bar("carving")
+        if settings.hull == "thesis":
+            occupancy, field = carve(sils, cameras, grid, tolerance=settings.tolerance), None
+        else:  # the field in a narrow band about the surface: cost grows with the surface, not the volume
+            field = hull_field(sils, cameras, grid, tolerance=settings.tolerance, progress=bar, sparse=True)
+            occupancy = field.occupancy()
+        bar(len(cameras), len(cameras))
+        bar.close()
+        if not occupancy.any():
+            raise SessionError(
+                f"{self.session.json_path}: carving left no voxel: the silhouettes do not agree with the cameras "
+                "(check the calibration, the roi and the threshold)"
+            )
+        return CarvingStage(grid, occupancy, field)
+
+    def _run_coloring(self, settings, clock, out, notify):
+        if settings.method == "hull":
+            return None
+        carved, sils, cameras = out["carving"], out["silhouettes"], out["calibration"].cameras
+        kind = "voxel_coloring" if settings.method == "coloring" else "space_carving"
+        bar = clock.bar("coloring")
+        res = color_voxels(self.images, cameras, carved.occupancy, carved.grid, method=kind,
+                           masks=[s.mask for s in sils], progress=bar,
+                           threshold="auto" if settings.color_threshold is None else settings.color_threshold,
+                           **PIPELINE_OPTIONS)
+        bar.close()
+        return ColoringStage(res.occupancy, res.colors, res.colored, float(res.threshold),
+                             report_entry(res, carved.occupancy, carved.grid))
+
+    def _run_surface(self, settings, clock, out, notify):
+        carved, colored, cameras = out["carving"], out["coloring"], out["calibration"].cameras
+        grid = carved.grid
+        bar = clock.bar("surface")
+        # after colouring, the surface is the coloured voxel model's: the hull field knows
+        # nothing of the voxels colouring carved, and setting them outside in the field
+        # moved the surface inward by up to a voxel wherever colouring carved a surface voxel
+        if colored is not None:
+            surface_of = colored.occupancy
+        else:
+            surface_of = carved.occupancy if carved.field is None else carved.field
+        raw = mesh_from_field(surface_of, grid)
+        if colored is not None:
+            raw = color_vertices(raw, colored.colors, colored.colored, grid)
+        notify("mesh", raw)
+        clock.check()
+        mesh, steps = raw, None
+        if settings.finish:
+            footprint = pixel_footprint(cameras, grid)
+            mesh, steps = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=footprint)
+            steps["pixel_footprint_mm"] = footprint
+            clock.check()
+        aaa = error = None
+        if settings.measure or (settings.measure is None and is_aaa_session(self.session)):
+            try:
+                aaa = measure_aaa(surface_of, grid)
+            except OrganlabError as e:
+                if settings.measure:  # asked for: an error; automatic: noted in the report
+                    raise
+                error = str(e)
+        bar(1, 1)
+        bar.close()
+        return SurfaceStage(raw, mesh, steps, aaa, error)
+
+    def _run_checks(self, settings, clock, out, notify):
+        s = self.session
+        cal_stage, sils, carved = out["calibration"], out["silhouettes"], out["carving"]
+        colored, surf = out["coloring"], out["surface"]
+        cal, cameras, grid = cal_stage.calibration, cal_stage.cameras, carved.grid
+        occupancy = carved.occupancy if colored is None else colored.occupancy
+        names = self.names
+        agr = view_agreement(surf.mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
+        figures = AgreementFigures.from_agreement(agr, names)
+        timings = {k: self.timings[k] for k in STAGES if k in self.timings and k != "checks"}
+        report = _report(s, self.views, grid, occupancy, surf.mesh, cameras, cal, cal_stage.how, sils, timings,
+                         settings)
+        report.update(surf.to_dict())
+        if colored is not None:
+            report["coloring"] = colored.info
+        for row, a in zip(report["views"], agr.views):
+            row["agreement"] = a
+        report["agreement"] = {"limit": agr.limit, **figures.to_dict()}
+        warnings = list(agr.warnings)
+        suggested = self._angle_suggestions(grid, sils, cal, agr, names)
+        if suggested:
+            report["agreement"]["suggested_angles"] = suggested
+            text = suggestion_text(suggested)
+            if text and warnings:
+                warnings[0] += f"; {text}"
+        report.setdefault("warnings", []).extend(warnings)
+        if getattr(s, "notes", ()):
+            report["notes"] = list(s.notes)  # re-orthonormalised rotations
+        # calibration images not used, and why (no board found, board moved)
+        for what, fit in (("intrinsic", cal.intrinsics), ("turntable", cal.turntable)):
+            if fit is not None:
+                report["calibration"][f"{what}_rejected"] = dict(fit.rejected)
+        if cal.turntable is not None:
+            report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
+        report["warnings"].extend(cal.warnings())
+        return ChecksStage(agr, figures, report)
+
+    def _angle_suggestions(self, grid, sils, cal, agr, names):
+        """For a few flagged views whose poses come from their table angles: the angle each agrees best at."""
+        views = [self.session.views[i] for i in self.views]
+        bad = [i for i, v in enumerate(agr.views) if not v["ok"]]
+        table = None if cal is None or cal.turntable is None else cal.turntable.camera
+        if (not bad or table is None or len(bad) > MANY_FLAGGED * len(agr.views)
+                or any(views[i].pose is not None for i in bad)):
+            return {}
+        return suggest_angles(table, [v.angle_deg for v in views], sils, bad, grid, names=names)
+
+    def _reconstruction(self, settings, out):
+        cal = out.get("calibration")
+        carved, colored, surf, checks = out.get("carving"), out.get("coloring"), out.get("surface"), out.get("checks")
+        occupancy = None if carved is None else (carved.occupancy if colored is None else colored.occupancy)
+        return Reconstruction(
+            self.session,
+            None if carved is None else carved.grid,
+            occupancy,
+            None if surf is None else surf.mesh,
+            [] if cal is None else cal.cameras,
+            out.get("silhouettes") or [],
+            None if checks is None else checks.report,
+            None if carved is None else carved.field,
+            None if colored is None else colored.colors,
+            None if cal is None else cal.calibration,
+            None if surf is None else surf.raw_mesh,
+            None if surf is None else surf.aaa,
+            settings=settings,
+            agreement=None if checks is None else checks.figures,
+            aaa_error=None if surf is None else surf.aaa_error,
+            color_threshold=None if colored is None else colored.threshold,
+            timings={k: self.timings[k] for k in STAGES if k in self.timings and k in out},
+            views=None if self.views == list(range(len(self.session.views))) else list(self.views),
+        )
+
+    # ------------------------------------------------------------ for the viewer
+    @property
+    def is_aaa(self) -> bool:
+        """Whether the session's specimen is an AAA (measured by default: ``Settings.measure=None``)."""
+        return bool(is_aaa_session(self.session))
+
+    def view_silhouette(self, j: int, threshold: float | None = None) -> Silhouette:
+        """The silhouette of the engine's view ``j`` at a threshold (its automatic one when None)."""
+        return self.silhouette_model.silhouette(j, threshold=threshold)
+
+    def stream_hull(self, settings: Settings, on_view: Callable[[int, Silhouette, Any, np.ndarray, VoxelGrid], None], *,
+                    cancel: Callable[[], bool] | None = None) -> None:
+        """Carve view by view (the thesis's test), calling ``on_view(j, silhouette, camera, occupancy, grid)``
+        after each view: the hull so far, what the viewer shows at start-up and a capture shows as the table turns.
+
+        The silhouettes and cameras are the engine's stages (kept for the next :meth:`run`).
+        """
+        settings = settings.validate()
+        clock = _Clock(None, cancel)
+        out = {"calibration": self._stage("calibration", settings, clock)}
+        out["silhouettes"] = self._stage("silhouettes", settings, clock, out)
+        grid = self.grid(settings)
+        carver = ProgressiveCarver(grid, tolerance=settings.tolerance)
+        for j, (sil, cam) in enumerate(zip(out["silhouettes"], out["calibration"].cameras)):
+            on_view(j, sil, cam, carver.add_view(sil.mask, cam), grid)
+            clock.check()
+
+    def carving_views(self, rec: Reconstruction) -> np.ndarray:
+        """For every voxel of ``rec``'s grid, the first view that carves it (-1: kept), ``grid.shape`` int16
+        (:func:`organlab.carving.carving_views`)."""
+        return carving_views(rec.masks, rec.cameras, rec.grid)
+
+    def load_result(self, folder: str | Path) -> Reconstruction:
+        """A result folder of this session (:meth:`Reconstruction.load`) with the engine's views, cameras and
+        silhouettes (at the thresholds its report used), its agreement figures from the report, and the AAA
+        measures (the report keeps only their summary: measured again from ``voxels.npz``, the volume
+        ``organlab reconstruct`` measured)."""
+        rec = Reconstruction.load(folder, session=self.session)
+        rows = rec.report.get("views", [])
+        rec.cameras = self.cameras()
+        rec.silhouettes = [self.view_silhouette(j, rows[i].get("silhouette_threshold") if i < len(rows) else None)
+                           for j, i in enumerate(self.views)]
+        rec.views = list(self.views)
+        if rec.agreement is not None and len(rows) == len(self.session.views):
+            rec.agreement = rec.agreement.subset(self.views)
+        if "aaa" in rec.report or self.is_aaa:
+            try:
+                rec.aaa = measure_aaa(*load_voxels(folder))
+            except OrganlabError as e:
+                rec.aaa_error = str(e)
+        return rec
+
+
+def _hashable(v):
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return tuple(_hashable(x) for x in v)
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return v
+
+
+def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timings, settings):
+    volume = grid.volume_of(occupancy)
+    m = measure(mesh)
+    cam0 = cameras[0]
+    camera = {"K": cam0.K.tolist(), "dist": cam0.dist.tolist(), "image_size": list(cam0.image_size)}
+    if cal.rms_px is not None:
+        camera["rms_px"] = cal.rms_px
+    r = {
+        "organlab_version": __version__,
+        "session": session.name,
+        "method": settings.method,
+        "hull": settings.hull,
+        "volume_mm3": volume,
+        "mesh_volume_mm3": m["volume_mm3"],
+        "mesh_area_mm2": m["area_mm2"],
+        "watertight": m["watertight"],
+        "voxel_size_mm": grid.voxel_size,
+        "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape), "occupied_voxels": int(occupancy.sum())},
+        "timings_s": {k: round(v, 4) for k, v in timings.items()},
+        "calibration": {"source": how, "rms_px": cal.rms_px, "turntable_rms_px": cal.turntable_rms_px},
+        "views": [
+            {"image": session.relpath(session.views[i].image), "angle_deg": session.views[i].angle_deg,
+             "R": c.R.tolist(), "t": c.t.tolist(),
+             "silhouette_threshold": s.threshold, "silhouette_source": s.source,
+             **({"silhouette_key": s.info} if getattr(s, "info", None) else {})}
+            for i, c, s in zip(views, cameras, sils)
+        ],
+        "camera": camera,
+    }
+    if cal.turntable_rms_px is not None:
+        r["turntable_rms_px"] = cal.turntable_rms_px
+    ref = session.reference.get("volume_mm3")
+    if ref:
+        r["reference"] = dict(session.reference)
+        r["volume_error_pct"] = 100.0 * (volume - ref) / ref
+        r["mesh_volume_error_pct"] = 100.0 * (m["volume_mm3"] - ref) / ref
+    return r
+
+
+def run(session: Session | str | Path, settings: Settings | None = None, *, calibration: Any = None,
+        on_stage: Callable[[str, Any], None] | None = None, cancel: Callable[[], bool] | None = None,
+        until: str | None = None, progress: Callable[[str], Any] | None = None) -> Reconstruction:
+    """One run of every stage on a session: ``Engine(session, calibration=...).run(settings, ...)``.
+
+    Examples
+    --------
+    >>> from organlab.engine import Settings, run
+    >>> rec = run("sample_sessions/aaa_phantom", Settings(voxel_size=4.0, finish=False))
+    >>> rec.report["watertight"], rec.agreement.mean_iou > 0.9
+    (True, True)
+    """
+    return Engine(session, calibration=calibration).run(settings, on_stage=on_stage, cancel=cancel, until=until,
+                                                        progress=progress)
