@@ -188,9 +188,18 @@ def _view(a):
 
     from .viewer import SessionViewer
 
-    app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port)
-    print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
+    # the session and --result are checked before the server starts; then the URL, then each start-up step
+    app = SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=a.port,
+                        say=lambda line: print(line, flush=True))
     try:
+        shown = ""
+        while app.result is None and not app.errors:  # the start-up's stages, one line each
+            stage = app.status.split(": view ")[0]
+            if stage != shown:
+                print(f"  {stage}", flush=True)
+                shown = stage
+            time.sleep(0.2)
+        print(f"  {app.status}" if app.result is not None else f"organlab view: {app.status}", flush=True)
         while True:
             time.sleep(1.0)
     finally:
