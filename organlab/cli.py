@@ -9,6 +9,7 @@
     organlab synth OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force] [...]
     organlab capture --turntable sim|PORT --camera sim|INDEX|URL --step DEG --out SESSION [--view [--port P]] [...]
     organlab view SESSION [--result DIR] [--port P] [--host H] [--voxel-size MM]
+    organlab --version
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -24,6 +25,7 @@ import sys
 from pathlib import Path
 
 from ._cliparser import OneLineParser as _Parser
+from . import __version__
 from .errors import OrganlabError, SettingsError
 
 #: Settings (organlab.engine.Settings) whose flag is not --NAME
@@ -42,6 +44,7 @@ def _positive_float(text):
 
 def _parser():
     p = _Parser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
+    p.add_argument("--version", action="version", version=f"organlab {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("reconstruct", help="carve the specimen of a session and write voxels, mesh and report")
@@ -51,7 +54,7 @@ def _parser():
     r.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
                    help="silhouette threshold in grey levels (default: Li's automatic threshold per view)")
     r.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull",
-                   help="hull: visual hull; coloring: Seitz & Dyer voxel coloring on the hull (recovers concavities "
+                   help="hull: visual hull (default); coloring: Seitz & Dyer voxel coloring on the hull (recovers concavities "
                         "no silhouette shows; needs the cameras above the specimen); space_carving: the same for any "
                         "camera layout (slower)")
     r.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",
@@ -75,7 +78,7 @@ def _parser():
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
-    c.add_argument("session", type=Path)
+    c.add_argument("session", type=Path, help="session folder (holds session.json)")
     where = c.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", type=Path, metavar="DIR",
                        help="write DIR/calibration.json and the check figures in DIR/calibration_check")
@@ -83,7 +86,7 @@ def _parser():
                        help="write them into the session folder (later reconstructions reuse its calibration.json)")
     c.add_argument("--figures", type=Path, default=None, metavar="DIR",
                    help="where to write the check figures (default: calibration_check beside calibration.json)")
-    c.add_argument("--quiet", action="store_true")
+    c.add_argument("--quiet", action="store_true", help="no progress bars")
 
     _init_parser(sub)
     _add_view_parser(sub)
@@ -91,7 +94,7 @@ def _parser():
 
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
                        "'organlab synth --help' lists its options)")
-    s.add_argument("args", nargs=argparse.REMAINDER)
+    s.add_argument("args", nargs=argparse.REMAINDER, help="OUT and the generator's options: 'organlab synth --help'")
     _capture_parser(sub)
     return p
 
@@ -164,7 +167,7 @@ def _capture_parser(sub):
     k.add_argument("--settle", type=int, default=3, metavar="N", help="frames discarded before each image (default 3)")
     k.add_argument("--average", type=int, default=1, metavar="N", help="frames averaged into each image (default 1)")
     k.add_argument("--sim-size", default="640x480", metavar="WxH", help="simulated camera image size (default 640x480)")
-    k.add_argument("--quiet", action="store_true")
+    k.add_argument("--quiet", action="store_true", help="no progress bars")
     k.add_argument("--view", action="store_true", help="watch the capture in the live 3D viewer (browser): each view at "
                    "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
     k.add_argument("--port", type=int, default=8080, help="with --view: TCP port on 127.0.0.1 (default 8080; the next free one if taken)")
