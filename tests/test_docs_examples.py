@@ -75,3 +75,20 @@ def test_surfaces_md_python_block_and_bare_mesh(tmp_path, monkeypatch, capsys):
     assert written == {"mesh.ply", "mesh.stl", "mesh.obj", "mesh.vtu", "surface_report.json"}, written
     said = re.search(r"A bare\s+`organlab mesh RESULT_DIR`.*?writes (.*?) only", (DOCS / "surfaces.md").read_text(), re.S)
     assert said and all(n.split(".")[0] in said.group(1) for n in written), said
+
+
+def test_shared_data_skip_reason_names_the_override(monkeypatch, tmp_path):
+    import importlib
+
+    import tests._shared_data as shared
+
+    monkeypatch.setenv("ORGANLAB_SHARED_DATA", str(tmp_path / "elsewhere"))
+    try:
+        mod = importlib.reload(shared)
+        mark = mod.needs_dino.mark
+        assert mark.args[0] is True  # no data there: skipped
+        assert str(tmp_path / "elsewhere" / "dinoSparseRing") in mark.kwargs["reason"]
+        assert "ORGANLAB_SHARED_DATA" in mark.kwargs["reason"]
+    finally:
+        monkeypatch.delenv("ORGANLAB_SHARED_DATA")
+        importlib.reload(shared)
