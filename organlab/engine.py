@@ -17,7 +17,7 @@ Examples
 >>> from organlab.engine import Engine, Settings
 >>> eng = Engine("sample_sessions/aaa_phantom", views=range(0, 36, 6))
 >>> rec = eng.run(Settings(voxel_size=4.0, finish=False), until="carving")
->>> rec.occupancy.any(), rec.mesh is None
+>>> bool(rec.occupancy.any()), rec.mesh is None
 (True, True)
 >>> eng.run(Settings(voxel_size=4.0, finish=False, threshold=20.0), until="carving").report is None
 True
@@ -44,18 +44,18 @@ from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_t
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
 from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
-from .errors import OrganlabError, SessionError, SettingsError
+from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, check_grid_memory
 from .session import Session, load_session, write_json
-from .silhouette import Silhouette, SilhouetteModel
+from .silhouette import Silhouette, SilhouetteModel, silhouette
 from . import surface  # its writers through the module (tests replace them to interrupt a write)
 from .surface import (color_vertices, finish_surface, is_aaa_session, load_voxels, measure, measure_aaa, mesh_from_field,
                       read_ply)
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
-           "ChecksStage", "run", "pixel_footprint"]
+           "ChecksStage", "LiveHull", "run", "pixel_footprint"]
 
 METHODS = ("hull", "coloring", "space_carving")
 HULL_METHODS = ("subvoxel", "thesis")
@@ -105,7 +105,7 @@ class Settings:
     >>> Settings(threshold=-1).validate()
     Traceback (most recent call last):
     ...
-    organlab.engine.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
+    organlab.errors.SettingsError: threshold must be a finite number > 0 (grey levels, or Delta E for a backdrop session), got -1
     """
 
     voxel_size: float = 1.0
@@ -410,8 +410,10 @@ class Reconstruction:
         The colour threshold colouring used.
     timings : dict of str -> float
         Seconds per stage run (a kept stage: the time it took when it ran).
-    views : list of int or None
-        The session views reconstructed (None: all of them).
+    views : list of int
+        The indices of the views reconstructed (``Engine(views=...)``; every view by default).
+    coloring : dict or None
+        The colouring's figures (the report's ``coloring`` entry).
 
     A run stopped by ``until=`` leaves the fields of the later stages None.
     """
@@ -434,6 +436,7 @@ class Reconstruction:
     color_threshold: float | None = None
     timings: dict = dataclasses.field(default_factory=dict)
     views: list | None = None
+    coloring: dict | None = None
 
     @property
     def masks(self) -> list:
@@ -585,28 +588,51 @@ class Engine:
     max_memory : int, optional
         Bytes the voxel grid may take (default the memory available now;
         :func:`organlab.preflight.check_grid_memory`).
+    cameras : sequence of Camera, optional
+        The views' cameras, given: no calibration stage runs.
+    silhouettes : sequence of Silhouette, optional
+        The views' silhouettes, given: ``Settings.threshold`` does not apply.
+    mode, background : str
+        How the silhouettes are found (:class:`organlab.silhouette.SilhouetteModel`):
+        colour or grey difference, median or mean background model.
+
+    :meth:`from_views` makes an engine of views without a session (the
+    carving tuner's): cameras and silhouettes given, the roi in the settings.
 
     Attributes
     ----------
-    session : Session
+    session : Session or None
     views : list of int
     computed : dict of str -> int
         How many times each stage ran (the rest came from the cache).
     """
 
-    def __init__(self, session: Session | str | Path, *, calibration: Any = None, recalibrate: bool = False,
+    def __init__(self, session: Session | str | Path | None, *, calibration: Any = None, recalibrate: bool = False,
                  images: Sequence[np.ndarray] | None = None, views: Sequence[int] | None = None,
-                 max_memory: int | None = None):
-        self.session = session if isinstance(session, Session) else load_session(session)
-        s = self.session
-        if not s.views:
-            raise SessionError(f"{s.json_path}: views: the session has no views to reconstruct (calibration-only session)")
-        self.views = list(range(len(s.views))) if views is None else [int(i) for i in views]
-        bad = [i for i in self.views if not 0 <= i < len(s.views)]
+                 max_memory: int | None = None, cameras: Sequence | None = None,
+                 silhouettes: Sequence[Silhouette] | None = None, mode: str = "color", background: str = "median"):
+        self._model_options = {"mode": mode, "background": background}
+        if session is None:
+            if cameras is None or silhouettes is None:
+                raise SettingsError("session", "is needed unless the cameras and the silhouettes are given")
+            self.session = None
+            n = len(cameras)
+        else:
+            self.session = session if isinstance(session, Session) else load_session(session)
+            s = self.session
+            if not s.views:
+                raise SessionError(f"{s.json_path}: views: the session has no views to reconstruct "
+                                   "(calibration-only session)")
+            n = len(s.views)
+        self.views = list(range(n)) if views is None else [int(i) for i in views]
+        bad = [i for i in self.views if not 0 <= i < n]
         if bad or not self.views:
-            raise SettingsError("views", f"must be indices of the session's {len(s.views)} views, got {list(views)!r}")
-        if images is not None and len(images) != len(self.views):
-            raise SettingsError("images", f"must be one per view: got {len(images)} for {len(self.views)} views")
+            raise SettingsError("views", f"must be indices of the {n} views, got {views!r}")
+        for what, given in (("images", images), ("cameras", cameras), ("silhouettes", silhouettes)):
+            if given is not None and len(given) != len(self.views):
+                raise SettingsError(what, f"must be one per view: got {len(given)} for {len(self.views)} views")
+        self._cameras = None if cameras is None else list(cameras)
+        self._silhouettes = None if silhouettes is None else list(silhouettes)
         self._calibration = calibration
         self._recalibrate = bool(recalibrate)
         self._images = None if images is None else list(images)
@@ -616,11 +642,23 @@ class Engine:
         self.computed = {name: 0 for name in STAGES}
         self.timings: dict[str, float] = {}
 
+    @classmethod
+    def from_views(cls, images: Sequence[np.ndarray] | None, silhouettes: Sequence[Silhouette], cameras: Sequence, *,
+                   max_memory: int | None = None) -> Engine:
+        """An engine of views without a session: the silhouettes and cameras given, ``Settings.roi`` needed.
+
+        ``images`` (one per view) are needed by colouring only.  Its runs have
+        no report (nothing of a session to write); the agreement is measured.
+        """
+        return cls(None, images=images, cameras=cameras, silhouettes=silhouettes, max_memory=max_memory)
+
     # ------------------------------------------------------------ what does not depend on the settings
     @property
     def images(self) -> list:
         """The views' images, read once (colouring needs them again)."""
         if self._images is None:
+            if self.session is None:
+                raise SettingsError("images", "are needed for colouring (method other than 'hull')")
             s = self.session
             self._images = [s.read(s.views[i].image, key=f"views[{i}].image") for i in self.views]
         return self._images
@@ -629,12 +667,15 @@ class Engine:
     def silhouette_model(self) -> SilhouetteModel:
         """The views prepared for silhouettes at any threshold (background or backdrop keying), built once."""
         if self._model is None:
-            self._model = SilhouetteModel.from_session(self.session, images=self.images, views=self.views)
+            self._model = SilhouetteModel.from_session(self.session, images=self.images, views=self.views,
+                                                       **self._model_options)
         return self._model
 
     @property
     def names(self) -> list:
-        """The views' image names, relative to the session folder."""
+        """The views' image names, relative to the session folder (``views[i]`` without a session)."""
+        if self.session is None:
+            return [f"views[{i}]" for i in self.views]
         return [self.session.relpath(self.session.views[i].image) for i in self.views]
 
     def cameras(self) -> list:
@@ -645,6 +686,8 @@ class Engine:
         """The box carved: ``settings.roi`` or the session's."""
         if settings.roi is not None:
             return tuple(tuple(float(v) for v in p) for p in settings.roi)
+        if self.session is None:
+            raise SettingsError("roi", "is needed: no session gives one")
         return (tuple(float(v) for v in self.session.roi_min), tuple(float(v) for v in self.session.roi_max))
 
     def grid(self, settings: Settings) -> VoxelGrid:
@@ -708,10 +751,12 @@ class Engine:
         return self._reconstruction(settings, out)
 
     def _preflight(self, settings):
-        s = self.session
+        if self._silhouettes is not None and settings.threshold is not None:
+            raise SettingsError("threshold", "does not apply: the silhouettes are given")
         lo, hi = self.roi(settings)
+        where = "the views" if self.session is None else str(self.session.json_path)
         check_grid_memory(lo, hi, settings.voxel_size, max_memory=self.max_memory, method=settings.method,
-                          tolerance=int(settings.tolerance), where=str(s.json_path))
+                          tolerance=int(settings.tolerance), where=where)
 
     def _stage(self, name, settings, clock, out=None, notify=None):
         key = self.key(name, settings)
@@ -735,6 +780,8 @@ class Engine:
 
     # ------------------------------------------------------------ the stages
     def _run_calibration(self, settings, clock, out, notify):
+        if self._cameras is not None:
+            return CalibrationStage(None, "given", list(self._cameras))
         bar = None
 
         def progress(done, total):
@@ -753,6 +800,8 @@ class Engine:
         return CalibrationStage(cal, how, [every[i] for i in self.views], seconds)
 
     def _run_silhouettes(self, settings, clock, out, notify):
+        if self._silhouettes is not None:
+            return list(self._silhouettes)
         bar = clock.bar("silhouettes")
         sils = self.silhouette_model.silhouettes(threshold=settings.threshold, progress=bar)
         bar.close()
@@ -770,8 +819,9 @@ class Engine:
         bar(len(cameras), len(cameras))
         bar.close()
         if not occupancy.any():
+            where = "the views" if self.session is None else self.session.json_path
             raise SessionError(
-                f"{self.session.json_path}: carving left no voxel: the silhouettes do not agree with the cameras "
+                f"{where}: carving left no voxel: the silhouettes do not agree with the cameras "
                 "(check the calibration, the roi and the threshold)"
             )
         return CarvingStage(grid, occupancy, field)
@@ -813,7 +863,7 @@ class Engine:
             steps["pixel_footprint_mm"] = footprint
             clock.check()
         aaa = error = None
-        if settings.measure or (settings.measure is None and is_aaa_session(self.session)):
+        if settings.measure or (settings.measure is None and self.is_aaa):
             try:
                 aaa = measure_aaa(surface_of, grid)
             except OrganlabError as e:
@@ -833,6 +883,8 @@ class Engine:
         names = self.names
         agr = view_agreement(surf.mesh, cameras, sils, voxel_size=grid.voxel_size, names=names)
         figures = AgreementFigures.from_agreement(agr, names)
+        if s is None:  # views without a session: nothing of a session to report
+            return ChecksStage(agr, figures, None)
         timings = {k: self.timings[k] for k in STAGES if k in self.timings and k != "checks"}
         report = _report(s, self.views, grid, occupancy, surf.mesh, cameras, cal, cal_stage.how, sils, timings,
                          settings)
@@ -893,14 +945,15 @@ class Engine:
             aaa_error=None if surf is None else surf.aaa_error,
             color_threshold=None if colored is None else colored.threshold,
             timings={k: self.timings[k] for k in STAGES if k in self.timings and k in out},
-            views=None if self.views == list(range(len(self.session.views))) else list(self.views),
+            views=list(self.views),
+            coloring=None if colored is None else colored.info,
         )
 
     # ------------------------------------------------------------ for the viewer
     @property
     def is_aaa(self) -> bool:
         """Whether the session's specimen is an AAA (measured by default: ``Settings.measure=None``)."""
-        return bool(is_aaa_session(self.session))
+        return self.session is not None and bool(is_aaa_session(self.session))
 
     def view_silhouette(self, j: int, threshold: float | None = None) -> Silhouette:
         """The silhouette of the engine's view ``j`` at a threshold (its automatic one when None)."""
@@ -947,6 +1000,110 @@ class Engine:
             except OrganlabError as e:
                 rec.aaa_error = str(e)
         return rec
+
+
+class LiveHull:
+    """The hull carved view by view as views arrive: a capture, or a stream of views.
+
+    The progressive form of the carving stage (the thesis's test,
+    :class:`organlab.carving.ProgressiveCarver`); with a ``silhouette``
+    function it also finds each arriving image's silhouette.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+    tolerance : int
+        Views allowed to disagree before a voxel is carved.
+    silhouette : callable(image) -> Silhouette, optional
+        How an arriving image's silhouette is found (:meth:`add_image`).
+    camera0 : Camera, optional
+        The camera at table angle 0 (:meth:`for_capture`).
+
+    Examples
+    --------
+    >>> from organlab.synthetic import Sphere, default_camera, render_masks
+    >>> cams = [default_camera((160, 120)).at_table_angle(a) for a in (0, 90)]
+    >>> hull = LiveHull(VoxelGrid.from_roi((-40, -40, 0), (40, 40, 80), 4.0))
+    >>> for cam, cov in zip(cams, render_masks(Sphere(center=(0, 0, 40), radius=20), cams)):
+    ...     occ = hull.add(cov >= 0.5, cam)
+    >>> bool(occ.any()), hull.views
+    (True, 2)
+    """
+
+    def __init__(self, grid: VoxelGrid, *, tolerance: int = 0, silhouette: Callable[[np.ndarray], Silhouette] | None = None,
+                 camera0: Any = None):
+        self.grid = grid
+        self.camera0 = camera0
+        self._carver = ProgressiveCarver(grid, tolerance=tolerance)
+        self._silhouette = silhouette
+        self.views = 0
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        """The hull so far, ``grid.shape`` bool."""
+        return self._carver.occupancy
+
+    def add(self, mask: np.ndarray, camera: Any) -> np.ndarray:
+        """Carve with one more view's (H, W) bool mask; the hull so far."""
+        self.views += 1
+        return self._carver.add_view(mask, camera)
+
+    def add_image(self, image: np.ndarray, camera: Any) -> tuple:
+        """Find an arriving image's silhouette (when a ``silhouette`` function was given) and carve with it.
+
+        Returns
+        -------
+        silhouette : Silhouette or None
+        occupancy : (nx, ny, nz) bool or None
+            None without a silhouette.
+        """
+        if self._silhouette is None:
+            return None, None
+        sil = self._silhouette(image)
+        return sil, self.add(sil.mask, camera)
+
+    @staticmethod
+    def by_subtraction(background: np.ndarray, *, threshold: float | None = None,
+                       floor: float = 0.0) -> Callable[[np.ndarray], Silhouette]:
+        """The silhouette function of background subtraction against a model of the empty scene
+        (:func:`organlab.silhouette.silhouette`)."""
+        return lambda image: silhouette(image, background, threshold=threshold, floor=floor)
+
+    @classmethod
+    def for_capture(cls, session: Session | str | Path, *, voxel_size: float = 2.0, threshold: float | None = None,
+                    tolerance: int = 0) -> LiveHull:
+        """The live hull of a capture in progress, from what its session folder holds at the first view.
+
+        The camera at table angle 0 from the turntable calibration
+        (:func:`organlab.calibration.calibration_for`), the grid of the roi,
+        and each image's silhouette as ``organlab reconstruct`` finds it
+        (:class:`organlab.silhouette.SilhouetteModel`: background subtraction
+        with the frames' noise floor, or keying against the session's
+        ``backdrop``; a ``'border'`` backdrop is estimated from the image itself).
+
+        Raises
+        ------
+        CalibrationError
+            No turntable calibration to place the views.
+        """
+        s = session if isinstance(session, Session) else load_session(session)
+        Settings(voxel_size=voxel_size, threshold=threshold, tolerance=tolerance).validate()
+        cal, _ = calibration_for(s)
+        if cal.turntable is None:
+            raise CalibrationError(f"{s.json_path}: no turntable calibration to place the views "
+                                   "(capture with the board on the table)")
+        backdrop = getattr(s, "backdrop", None)
+        needs_frames = backdrop is None or backdrop.get("color") == "frames"
+        frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
+        find = None
+        if frames or not needs_frames:
+            def find(image):
+                model = SilhouetteModel([image], frames if needs_frames else None, backdrop=backdrop,
+                                        names=[f"{s.json_path}: the captured view"])
+                return model.silhouette(0, threshold=threshold)
+
+        return cls(VoxelGrid.from_session(s, voxel_size), tolerance=tolerance, silhouette=find,
+                   camera0=cal.turntable.camera)
 
 
 def _hashable(v):

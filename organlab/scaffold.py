@@ -21,7 +21,6 @@ angles ``start + i * step``.
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -114,7 +113,7 @@ def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), squar
     """
     import math
 
-    from .session import FORMAT, load_session
+    from .session import FORMAT, load_session, save_session
 
     root = Path(folder).absolute()
     sj = root / "session.json"
@@ -177,7 +176,7 @@ def init_session(folder, *, step_deg, start_deg=0.0, inner_corners=(9, 6), squar
     doc["roi"] = {"min": roi[:3], "max": roi[3:]}
     doc["init_notes"] = notes  # readers ignore unknown keys; delete once checked
     backup = sj.read_bytes() if sj.exists() else None
-    sj.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    save_session(root, doc)
     try:
         load_session(root)
     except SessionError:

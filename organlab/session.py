@@ -9,6 +9,7 @@ the key, instead of half-way through a reconstruction.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +25,7 @@ __all__ = [
     "Session",
     "load_session",
     "read_image",
+    "save_session",
     "write_json",
 ]
 
@@ -109,6 +111,13 @@ class Session:
         list of (H, W, 3) uint8 RGB (or (H, W) uint8 with ``grey=True``)
         """
         return [self.read(v.image, key=f"views[{i}].image", grey=grey) for i, v in enumerate(self.views)]
+
+    def save(self, folder: str | Path | None = None) -> Path:
+        """Write this session's ``session.json`` (its document, :attr:`raw`) into ``folder`` (default its own).
+
+        Through :func:`save_session`, the one writer of ``session.json``.
+        """
+        return save_session(self.root if folder is None else folder, self.raw)
 
     def given_camera(self):
         """The intrinsics given in ``session.json`` as a :class:`Camera`, or None."""
@@ -464,14 +473,52 @@ def _check_images(s):
 
 def write_json(path, obj):
     """Write ``obj`` as indented JSON (numpy arrays and scalars converted)."""
+    Path(path).write_text(json.dumps(obj, indent=2, default=_json_default) + "\n", encoding="utf-8")
 
-    def default(o):
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, Path):
-            return o.as_posix()
-        raise TypeError(f"cannot serialise {type(o).__name__}")
 
-    Path(path).write_text(json.dumps(obj, indent=2, default=default) + "\n", encoding="utf-8")
+def save_session(folder: str | Path, doc: dict) -> Path:
+    """Write a ``session.json`` document into ``folder``, atomically: the one writer of ``session.json``.
+
+    Used by :meth:`Session.save`, the capture (rewritten after every image),
+    ``organlab init`` and ``organlab.synthetic``.  The document is written to
+    a temporary file beside it, flushed to disk and renamed over
+    ``session.json``, so that a crash never leaves half a file; ``format`` is
+    set to :data:`FORMAT` when the document has none (``doc`` itself is not
+    changed).  Numpy arrays and scalars and paths are converted as
+    :func:`write_json` converts them.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The session folder (created when missing).
+    doc : dict
+        The document (``docs/session-format.md``).
+
+    Returns
+    -------
+    Path
+        ``folder/session.json``.
+    """
+    if not isinstance(doc, dict):
+        raise TypeError(f"doc must be a dict (the session.json document), got {type(doc).__name__}")
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "session.json"
+    doc = doc if "format" in doc else {"format": FORMAT, **doc}
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(json.dumps(doc, indent=2, default=_json_default) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return o.as_posix()
+    raise TypeError(f"cannot serialise {type(o).__name__}")

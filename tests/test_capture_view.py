@@ -25,8 +25,8 @@ def _check_scene(viewer, root):
     assert _frustums(live) == [f"/views/{i:03d}" for i in range(6)]
     for cam, shown in zip(cams, live.cameras):  # each frustum stands at its view's calibrated camera
         np.testing.assert_allclose(shown.center, cam.center, atol=1e-6)
-    occ = live._carver.occupancy
-    grid = live._grid
+    occ = viewer.hull.occupancy
+    grid = viewer.hull.grid
     assert grid.voxel_size == 2.0 and occ.any()
     # the hull shown is the one of the session's silhouettes (same automatic thresholds)
     np.testing.assert_array_equal(occ, carve(silhouettes(s), cams, grid))

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import OrganlabError
-from ..session import FORMAT, Pattern
+from ..session import FORMAT, Pattern, save_session
 from ._audit import AUDIT_LIMIT_DEG, AngleAudit
 from ._errors import AngleAuditError, CameraError, CaptureError
 
@@ -65,15 +65,6 @@ def stop_angles(step_deg):
 
 def _angle_name(a):
     return f"{int(round(a)):03d}" if abs(a - round(a)) < 1e-9 else f"{a:07.3f}".replace(".", "_")
-
-
-def _write_json_atomic(path, doc):
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(json.dumps(doc, indent=2) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _free_name(root, rel):
@@ -168,7 +159,7 @@ class _Capture:
         if len(events) > self.n_events:
             self.doc["capture"]["events"].extend(events[self.n_events:])
             self.n_events = len(events)
-        _write_json_atomic(self.root / "session.json", self.doc)
+        save_session(self.root, self.doc)  # atomically: temporary file, fsync, rename
 
     def grab(self, rel):
         image = self.camera.grab()

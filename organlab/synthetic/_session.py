@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..session import FORMAT, write_json
+from ..session import FORMAT, save_session, write_json
 from . import _hard, _render
 from ._boards import BOARD_MARGIN, DEFAULT_PATTERN, default_camera, intrinsic_board_poses, render_board, turntable_board_pose
 from ._specimens import make_specimen
@@ -171,7 +171,7 @@ def make_session(
                    board_supersample=board_supersample, formats=(view_format, background_format, jpeg_quality))
     if hard:
         truth["hard"] = {"exposure_gains": [v["exposure_gain"] for v in views_truth], "jpeg_chroma": "4:2:0"}
-    write_json(out / "session.json", session)
+    save_session(out, session)
     write_json(out / "truth.json", truth)
     truth["session_json"] = session
     return truth
@@ -331,5 +331,5 @@ def with_true_cameras(session_dir, dest):
     doc["camera"] = {"K": truth["camera"]["K"], "dist": truth["camera"]["dist"]}
     for view, true_view in zip(doc["views"], truth["views"]):
         view["pose"] = {"R": true_view["R"], "t": true_view["t"]}
-    write_json(dest / "session.json", doc)
+    save_session(dest, doc)
     return dest

@@ -271,7 +271,7 @@ class SessionViewer:
         shown = {"n": 0}
 
         def on_stage(name, result):
-            if name == "calibration":
+            if name == "calibration" or (name == "coloring" and result is None):  # kept / no colouring
                 return
             lap(name)
             if name == "silhouettes":

@@ -4,10 +4,11 @@ The capture calls :meth:`CaptureViewer.on_view` after each view it saves
 (``organlab.capture``'s ``on_view(index, angle_deg, image)`` hook).  The views
 come after the background frames and the board images on the table, so at the
 first view everything the viewer needs is in the session folder: the
-calibration (:func:`organlab.calibration.calibration_for`, the camera at table
-angle 0), the background model and the roi.  From then on each image is shown
-at its camera, its silhouette found and the hull carved view by view
-(:meth:`LiveView.capture_listener`).  A failure of the display is reported
+calibration (the camera at table angle 0), the background frames (or the
+backdrop) and the roi, which :meth:`organlab.engine.LiveHull.for_capture`
+reads.  From then on each image is shown at its camera, and the engine's live
+hull finds its silhouette (as ``organlab reconstruct`` does: background
+subtraction, or keying against the session's backdrop) and carves with it.  A failure of the display is reported
 once and switches the viewer off; it never stops the capture.
 """
 
@@ -16,6 +17,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..engine import LiveHull
+from ..session import load_session
 from ._live import LiveView
 
 
@@ -31,7 +34,8 @@ class CaptureViewer:
         short on a capture machine).
     threshold : float, optional
         Silhouette threshold, grey levels (automatic per view when omitted,
-        at least 5 x the background noise, as ``organlab reconstruct`` does).
+        at least 5 x the background noise, as ``organlab reconstruct`` does);
+        Delta E for a session keyed against a backdrop.
     tolerance : int
         Views allowed to disagree before a voxel is carved.
     host, port, verbose : as :class:`LiveView`
@@ -43,6 +47,8 @@ class CaptureViewer:
     live : LiveView
     camera0 : Camera or None
         The calibrated camera at table angle 0 (after the first view).
+    hull : organlab.engine.LiveHull or None
+        The hull carved so far (after the first view).
     error : str or None
         Why the viewer stopped following the capture.
     """
@@ -58,6 +64,7 @@ class CaptureViewer:
         self.say = say if say is not None else (lambda s: print(s, file=sys.stderr))
         self.live = LiveView(host=host, port=port, verbose=verbose, label=f"organlab capture: {self.root.name}")
         self.camera0 = None
+        self.hull = None
         self.error = None
         self._listener = None
 
@@ -88,26 +95,20 @@ class CaptureViewer:
             self.say(f"organlab capture: live view off: {self.error}")
 
     def _start(self, index):
-        """Calibration, background and grid from the session so far; earlier views from disk."""
-        from ..calibration import calibration_for
-        from ..errors import CalibrationError
-        from ..grid import VoxelGrid
-        from ..session import load_session
-        from ..silhouette import background_model, background_noise
-
+        """The engine's live hull from the session so far; earlier views from disk."""
         s = load_session(self.root)
-        cal, _ = calibration_for(s)
-        if cal.turntable is None:
-            raise CalibrationError(f"{s.json_path}: no turntable calibration to place the views "
-                                   "(capture with the board on the table)")
-        self.camera0 = cal.turntable.camera
-        background, floor = None, 0.0
-        if s.background_images:
-            frames = [s.read(p, key=f"background_images[{k}]") for k, p in enumerate(s.background_images)]
-            background, floor = background_model(frames), 5.0 * background_noise(frames)
-        self.live.set_grid(VoxelGrid.from_session(s, self.voxel_size), tolerance=self.tolerance)
-        listener = self.live.capture_listener(self.camera0, background=background, threshold=self.threshold,
-                                              floor=floor)
+        self.hull = LiveHull.for_capture(s, voxel_size=self.voxel_size, threshold=self.threshold,
+                                         tolerance=self.tolerance)
+        self.camera0 = self.hull.camera0
+        self.live.frame(*self.hull.grid.bounds)
+
+        def listener(k, angle_deg, image):
+            camera = self.camera0.at_table_angle(angle_deg)
+            sil, occ = self.hull.add_image(image, camera)
+            self.live.add_view(image, camera, sil)
+            if occ is not None:
+                self.live.set_voxels(occ, self.hull.grid)
+
         for k, v in enumerate(s.views[:index]):  # taken by an earlier run of this capture
             listener(k, v.angle_deg, s.read(v.image, key=f"views[{k}].image"))
         self._listener = listener

@@ -13,6 +13,8 @@ import threading
 
 import numpy as np
 
+from ..camera import Camera
+from ..engine import LiveHull
 from . import _scene
 
 
@@ -63,9 +65,7 @@ class LiveView:
         self._grid = grid
         self._carver = None
         if grid is not None:
-            from ..carving import ProgressiveCarver
-
-            self._carver = ProgressiveCarver(grid, tolerance=tolerance)
+            self._carver = LiveHull(grid, tolerance=tolerance)
         if roi is None:
             roi = grid.bounds if grid is not None else ((-70.0, -70.0, 0.0), (70.0, 70.0, 200.0))
         self.frame(*roi)
@@ -160,8 +160,6 @@ class LiveView:
         -------
         int : the view's index
         """
-        from ..camera import Camera
-
         if not isinstance(camera, Camera):
             raise TypeError(f"camera must be an organlab.camera.Camera, got {type(camera).__name__}")
         img = np.asarray(image)
@@ -183,7 +181,7 @@ class LiveView:
             if i == 0:
                 self.aim()
         if self._carver is not None and mask is not None:
-            occ = self._carver.add_view(mask, camera)
+            occ = self._carver.add(mask, camera)
             self.set_voxels(occ, self._grid)
         return i
 
@@ -196,11 +194,9 @@ class LiveView:
         tolerance : int
             Tolerance of the progressive carving.
         """
-        from ..carving import ProgressiveCarver
-
         with self._lock:
             self._grid = grid
-            self._carver = ProgressiveCarver(grid, tolerance=tolerance)
+            self._carver = LiveHull(grid, tolerance=tolerance)
         self.frame(*grid.bounds)
 
     def capture_listener(self, camera0, *, background=None, threshold=None, floor=0.0):
@@ -227,11 +223,10 @@ class LiveView:
         -------
         callable(index, angle_deg, image)
         """
-        from ..silhouette import silhouette
+        find = None if background is None else LiveHull.by_subtraction(background, threshold=threshold, floor=floor)
 
         def on_view(index, angle_deg, image):
-            sil = None if background is None else silhouette(image, background, threshold=threshold, floor=floor)
-            self.add_view(image, camera0.at_table_angle(angle_deg), sil)
+            self.add_view(image, camera0.at_table_angle(angle_deg), None if find is None else find(image))
 
         return on_view
 

@@ -2,20 +2,27 @@
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import numpy as np
 
+from ..engine import Engine, Settings
 from ..errors import OrganlabError
+from ..figures import mesh_snapshot
 from ._common import ipywidgets, new_figure, redraw
 
 
 class CarvingTuner:
     """Carve a session with chosen parameters and report what they give.
 
-    Each :meth:`run` calls the stage functions as
-    :func:`organlab.pipeline.reconstruct` does: the hull field of the
-    sub-pixel silhouettes (:func:`organlab.carving.hull_field`), optionally
-    voxel colouring of the hull (:func:`organlab.coloring.color_voxels`),
-    then the surface (:func:`organlab.surface.mesh_from_volume`).
+    Each :meth:`run` is a run of one :class:`organlab.engine.Engine` (the
+    stages of :func:`organlab.pipeline.reconstruct`: the hull field of the
+    sub-pixel silhouettes, optionally voxel colouring of the hull, the
+    marching-cubes surface, the view agreement), kept across runs: a new
+    voxel size re-runs the carving onward, a new colour threshold only the
+    colouring onward.  The surface is not finished (``finish=False``): the
+    tuner compares carving parameters, quickly.
 
     Parameters
     ----------
@@ -48,9 +55,11 @@ class CarvingTuner:
         After :meth:`run`: ``grid``, ``occupancy``, ``mesh``, ``volume_mm3``
         (the mesh's), ``voxel_volume_mm3``, ``agreement`` ((n_views,) IoU of
         each silhouette with the model's silhouette in that view),
-        ``coloring`` (the colouring's stats or None), ``color_threshold``
+        ``coloring`` (the colouring's report entry or None), ``color_threshold``
         (the threshold used, the measured one for ``'auto'``; or None),
-        ``error_pct`` (or None).
+        ``error_pct`` (or None), ``reconstruction`` (the engine's
+        :class:`organlab.engine.Reconstruction`).
+    engine : organlab.engine.Engine
     """
 
     def __init__(self, images, silhouettes, cameras, roi_min, roi_max, *, voxel_size=2.0, tolerance=0,
@@ -72,6 +81,7 @@ class CarvingTuner:
         self.color_threshold = color_threshold
         self.reference_volume = reference_volume
         self.angles_deg = None if angles_deg is None else [float(a) for a in angles_deg]
+        self.engine = Engine.from_views(self.images, self.silhouettes, self.cameras)
         self.result = None
         self.controls = {}
         self.last_figure = None
@@ -81,58 +91,42 @@ class CarvingTuner:
         """The tuner of a session with its cameras (e.g. from the calibration).
 
         ``views``: indices of the views to use (default all); silhouettes are
-        found with :func:`organlab.silhouette.silhouettes` when not given.
+        the engine's silhouette stage (automatic thresholds) when not given.
         """
-        from ..silhouette import silhouettes as find_silhouettes
-
         idx = list(range(len(session.views))) if views is None else [int(i) for i in views]
-        images = [session.read(session.views[i].image, key=f"views[{i}].image") for i in idx]
+        engine = Engine(session, views=idx, cameras=[cameras[i] for i in idx])
         if silhouettes is None:
-            silhouettes = find_silhouettes(session)
+            sils = engine.run(Settings(), until="silhouettes").silhouettes
+        else:
+            sils = [silhouettes[i] for i in idx]
         options.setdefault("reference_volume", session.reference.get("volume_mm3"))
         options.setdefault("angles_deg", [session.views[i].angle_deg for i in idx])
-        return cls(images, [silhouettes[i] for i in idx], [cameras[i] for i in idx],
-                   session.roi_min, session.roi_max, **options)
+        return cls(engine.images, sils, [cameras[i] for i in idx], session.roi_min, session.roi_max, **options)
 
     # ------------------------------------------------------------- run
-    def run(self):
+    def settings(self) -> Settings:
+        """The engine's settings of the current parameters."""
+        t = self.color_threshold
+        return Settings(voxel_size=self.voxel_size, tolerance=self.tolerance, finish=False, measure=False,
+                        method="hull" if t is None else "coloring", color_threshold=None if t in (None, "auto") else float(t),
+                        roi=(tuple(map(float, self.roi_min)), tuple(map(float, self.roi_max))))
+
+    def run(self) -> dict:
         """Carve with the current parameters; returns (and keeps) ``result``."""
-        from ..carving import hull_field
-        from ..datasets import render_silhouette
-        from ..grid import VoxelGrid
-        from ..surface import mesh_from_volume
-
-        grid = VoxelGrid.from_roi(self.roi_min, self.roi_max, self.voxel_size)
-        field = hull_field([s.coverage for s in self.silhouettes], self.cameras, grid, tolerance=self.tolerance)
-        occupancy = field >= 0.5
-        if not occupancy.any():
-            raise OrganlabError("carving left no voxel: lower the tolerance's strictness or check the silhouettes")
-        coloring = used = None
-        surface_of = field
-        if self.color_threshold is not None:
-            from ..coloring import PIPELINE_OPTIONS, color_voxels
-
-            t = "auto" if self.color_threshold == "auto" else float(self.color_threshold)
-            res = color_voxels(self.images, self.cameras, occupancy, grid, threshold=t,
-                               masks=[s.mask for s in self.silhouettes], **PIPELINE_OPTIONS)
-            occupancy, coloring, surface_of, used = res.occupancy, res.stats(), res.occupancy, float(res.threshold)
-        mesh = mesh_from_volume(surface_of, grid, level=0.5)
-        agreement = []
-        for s, cam in zip(self.silhouettes, self.cameras):
-            model = render_silhouette(cam, mesh=mesh)
-            union = np.count_nonzero(model | s.mask)
-            agreement.append(np.count_nonzero(model & s.mask) / union if union else 1.0)
+        rec = self.engine.run(self.settings())
         ref = self.reference_volume
+        volume = float(rec.mesh.volume)
         self.result = {
-            "grid": grid,
-            "occupancy": occupancy,
-            "mesh": mesh,
-            "volume_mm3": float(mesh.volume),
-            "voxel_volume_mm3": grid.volume_of(occupancy),
-            "agreement": np.asarray(agreement),
-            "coloring": coloring,
-            "color_threshold": used,
-            "error_pct": None if not ref else 100.0 * (float(mesh.volume) - ref) / ref,
+            "grid": rec.grid,
+            "occupancy": rec.occupancy,
+            "mesh": rec.mesh,
+            "volume_mm3": volume,
+            "voxel_volume_mm3": rec.grid.volume_of(rec.occupancy),
+            "agreement": np.asarray(rec.agreement.iou),
+            "coloring": rec.coloring,
+            "color_threshold": rec.color_threshold,
+            "error_pct": None if not ref else 100.0 * (volume - ref) / ref,
+            "reconstruction": rec,
         }
         return self.result
 
@@ -152,12 +146,7 @@ class CarvingTuner:
     # ---------------------------------------------------------- pictures
     def mesh_picture(self, *, window_size=(640, 560)):
         """(H, W, 3) uint8: the mesh rendered off-screen (pyvista, :func:`organlab.figures.mesh_snapshot`)."""
-        import tempfile
-        from pathlib import Path
-
         from matplotlib.image import imread
-
-        from ..figures import mesh_snapshot
 
         r = self.result if self.result is not None else self.run()
         with tempfile.TemporaryDirectory() as d:

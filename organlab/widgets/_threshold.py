@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..engine import Engine
 from ..errors import SessionError
 from ._common import ipywidgets, new_figure, redraw
 
@@ -11,8 +12,10 @@ from ._common import ipywidgets, new_figure, redraw
 class ThresholdPicker:
     """Pick the silhouette threshold of a session's views.
 
-    The silhouette is what :func:`organlab.silhouette.silhouettes` finds for
-    the view (through the same :class:`organlab.silhouette.SilhouetteModel`):
+    The silhouette is what the engine's silhouette stage finds for the view
+    (:attr:`organlab.engine.Engine.silhouette_model`, the
+    :class:`organlab.silhouette.SilhouetteModel` of
+    :func:`organlab.silhouette.silhouettes`):
     background subtraction against the session's empty frames, or keying
     against its ``backdrop``, with the picker's ``threshold`` (or, when it is
     None, the automatic threshold).
@@ -43,13 +46,12 @@ class ThresholdPicker:
     """
 
     def __init__(self, session, *, view=0, threshold=None, mode="color", background="median"):
-        from ..silhouette import SilhouetteModel
-
         if not session.background_images and session.backdrop is None:
             raise SessionError(f"{session.json_path}: background_images: the threshold picker needs background "
                                "frames or a 'backdrop'")
         self.session = session
-        self.model = SilhouetteModel.from_session(session, mode=mode, background=background)
+        self.engine = Engine(session, mode=mode, background=background)
+        self.model = self.engine.silhouette_model
         self.background = self.model.background
         self.floor = self.model.floor
         self.units = self.model.units
