@@ -13,6 +13,7 @@
     organlab sweep SESSION --out DIR [--threshold 10:40:5] [--voxel-size 2,1] [--method hull,coloring] [...]
                    [--workers N | --scheduler ADDRESS]
     organlab batch SESSION... --out DIR [--voxel-size MM] [--threshold T] [...] [--workers N | --scheduler ADDRESS]
+    organlab --version
 
 Errors caused by the input print one line (``organlab: error: ...``) naming
 the file and the fix, and exit with status 2; nothing is printed as a
@@ -27,6 +28,7 @@ import math
 import sys
 from pathlib import Path
 
+from . import __version__
 from .agreement import model_mask
 from .batch import batch, parse_values, sweep
 from .calibration import calibrate, export_cameras
@@ -139,6 +141,7 @@ def _start_server(start, what):
 
 def _parser():
     p = _Parser(prog="organlab", description="From a specimen on a turntable to a measured, watertight 3D model.")
+    p.add_argument("--version", action="version", version=f"organlab {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("reconstruct", help="carve the specimen of a session and write voxels, mesh and report")
@@ -148,7 +151,7 @@ def _parser():
     r.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
                    help="silhouette threshold in grey levels (default: Li's automatic threshold per view)")
     r.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull",
-                   help="hull: visual hull; coloring: Seitz & Dyer voxel coloring on the hull (recovers concavities "
+                   help="hull: visual hull (default); coloring: Seitz & Dyer voxel coloring on the hull (recovers concavities "
                         "no silhouette shows; needs the cameras above the specimen); space_carving: the same for any "
                         "camera layout (slower)")
     r.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",
@@ -177,7 +180,7 @@ def _parser():
                    help="accept image paths in session.json that lead out of the session folder (.., absolute, symlinks)")
 
     c = sub.add_parser("calibrate", help="calibrate intrinsics and turntable from the session's board images")
-    c.add_argument("session", type=Path)
+    c.add_argument("session", type=Path, help="session folder (holds session.json)")
     where = c.add_mutually_exclusive_group(required=True)
     where.add_argument("--out", type=Path, metavar="DIR",
                        help="write DIR/calibration.json and the check figures in DIR/calibration_check")
@@ -186,7 +189,7 @@ def _parser():
     c.add_argument("--figures", type=Path, default=None, metavar="DIR",
                    help="where to write the check figures (default: calibration_check beside calibration.json)")
     c.add_argument("--force", action="store_true", help="with --out: replace the calibration.json already in DIR")
-    c.add_argument("--quiet", action="store_true")
+    c.add_argument("--quiet", action="store_true", help="no progress bars")
 
     _init_parser(sub)
     _export_parser(sub)
@@ -195,7 +198,7 @@ def _parser():
 
     s = sub.add_parser("synth", add_help=False, help="generate a synthetic session (same as python -m organlab.synthetic; "
                        "'organlab synth --help' lists its options)")
-    s.add_argument("args", nargs=argparse.REMAINDER)
+    s.add_argument("args", nargs=argparse.REMAINDER, help="OUT and the generator's options: 'organlab synth --help'")
     _capture_parser(sub)
     _sweep_parsers(sub)
     return p
@@ -296,7 +299,7 @@ def _capture_parser(sub):
     k.add_argument("--settle", type=int, default=3, metavar="N", help="frames discarded before each image (default 3)")
     k.add_argument("--average", type=int, default=1, metavar="N", help="frames averaged into each image (default 1)")
     k.add_argument("--sim-size", default="640x480", metavar="WxH", help="simulated camera image size (default 640x480)")
-    k.add_argument("--quiet", action="store_true")
+    k.add_argument("--quiet", action="store_true", help="no progress bars")
     k.add_argument("--view", action="store_true", help="watch the capture in the live 3D viewer (browser): each view at "
                    "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
     k.add_argument("--port", type=_port, default=None, help="with --view: TCP port on 127.0.0.1 (default 8080, the next "
@@ -325,10 +328,18 @@ def _view(a):
         print(f"organlab: warning: --host {printable(a.host)} is not this machine only: anyone who can reach it gets "
               "the session's photos and can start reconstructions, with no access control; use 127.0.0.1 "
               "(and an SSH tunnel) unless the network is trusted", file=sys.stderr)
-    app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host, port=port),
-                        "organlab view")
-    print(f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)")
+    # the session and --result are checked before the server starts; then the URL, then each start-up step
+    app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host,
+                                              port=port, say=lambda line: print(line, flush=True)), "organlab view")
     try:
+        shown = ""
+        while app.result is None and not app.errors:  # the start-up's stages, one line each
+            stage = app.status.split(": view ")[0]
+            if stage != shown:
+                print(f"  {stage}", flush=True)
+                shown = stage
+            time.sleep(0.2)
+        print(f"  {app.status}" if app.result is not None else f"organlab view: {app.status}", flush=True)
         while True:
             time.sleep(1.0)
     finally:
@@ -590,10 +601,14 @@ def _sweep_parsers(sub):
     b.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
     b.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
                    help="silhouette threshold in grey levels (default: automatic per view)")
-    b.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull")
-    b.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel")
-    b.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X")
-    b.add_argument("--tolerance", type=int, default=0, metavar="K")
+    b.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull",
+                   help="hull: visual hull only (default); coloring / space_carving: then photo-consistency")
+    b.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",
+                   help="subvoxel: the sub-voxel hull field (default); thesis: the 8-corner bounding-box test")
+    b.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
+                   help="photo-consistency threshold for coloring/space_carving (default: automatic)")
+    b.add_argument("--tolerance", type=int, default=0, metavar="K",
+                   help="views allowed to disagree before a voxel is carved (default 0)")
     _dask_arguments(b)
 
 

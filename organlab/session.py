@@ -289,6 +289,8 @@ def _read_session_json(path):
         root = root.parent
     root = root.resolve()
     sj = root / "session.json"
+    if root.exists() and not root.is_dir():
+        raise SessionError(f"{root}: is a file, not a session folder; give the folder that holds session.json")
     if not root.is_dir():
         raise SessionError(f"{root}: session folder does not exist")
     if not sj.is_file():

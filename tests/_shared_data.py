@@ -14,7 +14,9 @@ import organlab
 
 SHARED_DATA = Path(os.environ.get("ORGANLAB_SHARED_DATA", Path(organlab.__file__).resolve().parents[2] / "shared" / "data"))
 DINO = SHARED_DATA / "dinoSparseRing"
-needs_dino = pytest.mark.skipif(not (DINO / "dinoSR_par.txt").is_file(), reason=f"dinoSparseRing not found at {DINO}")
+#: Why the dinoSparseRing tests skip: where they looked, and how to point them elsewhere
+DINO_MISSING = f"dinoSparseRing not found at {DINO} (set ORGANLAB_SHARED_DATA to the folder that holds dinoSparseRing/)"
+needs_dino = pytest.mark.skipif(not (DINO / "dinoSR_par.txt").is_file(), reason=DINO_MISSING)
 
 #: The repository, and the bundled sample session (a synthetic AAA phantom, 36 views; read it, never write into it).
 ROOT = Path(__file__).resolve().parents[1]

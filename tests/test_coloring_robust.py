@@ -15,6 +15,7 @@ from organlab.coloring import PIPELINE_OPTIONS, color_voxels
 from organlab.coloring._statistics import _shading_fit_std, _trimmed_std
 from organlab.raster import model_mask
 from tests._shared_data import DINO as DATA
+from tests._shared_data import DINO_MISSING
 from tests._shared_data import needs_dino
 from tests.test_coloring import SLOT, _Boxes, _hull, _render, _ring, _smooth
 
@@ -174,7 +175,7 @@ def test_grooved_specimen_under_the_hard_lamp():
 @pytest.fixture(scope="module")
 def dino():
     if not (DATA / "dinoSR_par.txt").is_file():
-        pytest.skip(f"dinoSparseRing not found at {DATA}")
+        pytest.skip(DINO_MISSING)
     from organlab.datasets import load_middlebury, middlebury_silhouettes
 
     data = load_middlebury(DATA)

@@ -33,13 +33,14 @@ from organlab.grid import VoxelGrid
 from organlab.surface import mesh_from_volume
 
 from tests._shared_data import DINO as DATA
+from tests._shared_data import DINO_MISSING
 from tests._shared_data import needs_dino as needs_data
 
 
 @pytest.fixture(scope="module")
 def dino():
     if not (DATA / "dinoSR_par.txt").is_file():
-        pytest.skip(f"dinoSparseRing not found at {DATA}")
+        pytest.skip(DINO_MISSING)
     data = load_middlebury(DATA)
     masks = middlebury_silhouettes(data.images)
     good = np.nonzero(data.good)[0]

@@ -40,10 +40,31 @@ def app(sample):
     """Every third view of the sample, 2 mm voxels (quick)."""
     from organlab.viewer import SessionViewer
 
-    v = SessionViewer(sample, voxel_size=2.0, views=range(0, 36, 3), port=0)
+    said = []
+
+    def say(line):  # each start-up line, and whether the page answered when it was said
+        import urllib.request
+
+        up = None
+        if " at http" in line:
+            with urllib.request.urlopen(line.split(" at ")[1].split()[0], timeout=10) as r:
+                up = r.status
+        said.append((line, up))
+
+    v = SessionViewer(sample, voxel_size=2.0, views=range(0, 36, 3), port=0, say=say)
+    v.said = said
     assert v.wait(timeout=180), v.errors
     yield v
     v.stop()
+
+
+def test_startup_says_the_url_first_then_its_steps(app):
+    lines = [line for line, _ in app.said]
+    # the address comes first, with the page already served, before the views, cameras and silhouettes are read
+    assert lines[0] == f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)" and app.said[0][1] == 200
+    assert lines[1:] == ["  starting: reading 12 views", "  starting: cameras (given in session.json)",
+                         "  starting: background and silhouette model"], lines
+    assert app.status.startswith("start-up: done in")
 
 
 # ------------------------------------------------------------------ LiveView
@@ -174,12 +195,19 @@ def test_threshold_rerun_and_cancel(app):
     assert app.wait(g, timeout=120) and not app.errors
     assert app.result.generation == g and app.result.settings.threshold == 45.0
     assert app.result.mesh.volume < before.mesh.volume
+    assert app.status.startswith("run 1: done in")  # the first change is run 1, whatever the generation
+    # the run's warnings (views whose silhouettes the smaller model leaves unexplained) are in the panel
+    warnings = app.result.report["warnings"]
+    assert warnings and not before.report["warnings"], (warnings, before.report["warnings"])
+    assert "**Warnings**" in app.controls.measure.content and warnings[0] in app.controls.measure.content
     # a newer request supersedes an older one still running: only the newest is shown
     g1 = app.rerun(threshold=None, voxel_size=1.0)
     g2 = app.rerun(voxel_size=2.0)
     assert g2 == g1 + 1 and app.wait(g2, timeout=120)
     assert app.result.generation == g2 and app.result.grid.voxel_size == 2.0
     assert app.worker.finished == g2
+    assert app.status.startswith("run 2: done in")  # the superseded request took no number
+    assert "**Warnings**" not in app.controls.measure.content
     np.testing.assert_allclose(app.result.mesh.volume, before.mesh.volume, rtol=1e-9)
 
 
@@ -246,12 +274,34 @@ def test_result_folder(sample, tmp_path):
         v.stop()
 
 
-def test_cli_view_bad_input(tmp_path, capsys):
-    from organlab.cli import main
+def test_cli_view_bad_input(tmp_path, capsys, sample, monkeypatch):
+    import json
 
-    assert main(["view", str(tmp_path / "nope")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("organlab: error:")
+    from organlab.cli import main
+    from organlab.viewer import _app
+
+    def no_server(**_kw):
+        raise AssertionError("the server started before the input was checked")
+
+    monkeypatch.setattr(_app, "LiveView", no_server)
+    other = tmp_path / "other"
+    other.mkdir()
+    for name in ("voxels.npz", "mesh.ply"):
+        (other / name).write_bytes(b"")
+    (other / "report.json").write_text(json.dumps({"session": "dino", "views": [{"image": "views/a.png"}] * 3}))
+    (tmp_path / "afile").write_text("x")
+    cases = [
+        (["view", str(tmp_path / "nope")], "session folder does not exist"),
+        (["view", str(tmp_path / "afile")], "is a file, not a session folder"),
+        (["view", str(sample), "--result", str(tmp_path / "nonexist")], "result folder does not exist"),
+        (["view", str(sample), "--result", str(tmp_path / "afile")], "is a file, not a result folder"),
+        (["view", str(sample), "--result", str(tmp_path)], "voxels.npz: missing"),
+        (["view", str(sample), "--result", str(other)], "made from session 'dino' (3 views), not from"),
+    ]
+    for argv, says in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("organlab: error:") and says in err[0], (argv, err)
 
 
 def test_thesis_hull_and_coloring_reruns(app):

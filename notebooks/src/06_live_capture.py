@@ -32,8 +32,11 @@
 # Here the rig is simulated: a simulated MDrive controller on the far end of a real serial link
 # (a pty pair, opened by pyserial as it would open `/dev/ttyUSB0`) and a camera that renders the
 # synthetic phantom at the table's physical angle.  The capture code is the same as for the real
-# rig.  A cell that would wait for a person at a real rig is tagged `needs-person` and left out
-# of the automatic runs.
+# rig.  The cell that captures with a real rig runs only when you say one is attached:
+
+# %%
+RIG_ATTACHED = False  # True: a camera and the table's serial port are connected (the real-rig cell below runs)
+RIG_PORT = "/dev/ttyUSB0"  # the MDrive controller's serial port
 
 # %%
 import json
@@ -155,14 +158,17 @@ plt.show()
 
 # %% [markdown]
 # At a real rig the capture asks the operator to clear the table, lay the board down, put the
-# specimen on.  This cell would run such a capture (a camera and the table's serial port are
-# needed); it is tagged `needs-person` and skipped by the automatic runs.
+# specimen on.  This cell runs such a capture when `RIG_ATTACHED = True` (first cell): a camera
+# and the table's serial port `RIG_PORT` are needed.  Without a rig it says so and Run All goes on.
 
-# %% tags=["needs-person"]
-from organlab.capture import MDriveTurntable, OpenCVCamera
+# %%
+if RIG_ATTACHED:
+    from organlab.capture import MDriveTurntable, OpenCVCamera
 
-with MDriveTurntable("/dev/ttyUSB0", home_switch=True) as table, OpenCVCamera(0) as camera:
-    capture_session(Path("my_session"), table, camera, step_deg=10.0, n_background=20, n_intrinsic=15)
+    with MDriveTurntable(RIG_PORT, home_switch=True) as table, OpenCVCamera(0) as camera:
+        capture_session(Path("my_session"), table, camera, step_deg=10.0, n_background=20, n_intrinsic=15)
+else:
+    print("RIG_ATTACHED is False: no real-rig capture (set it to True in the first cell when a rig is connected)")
 
 # %% [markdown]
 # ## Exercises

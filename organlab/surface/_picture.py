@@ -47,9 +47,11 @@ def mesh_snapshot(mesh: Mesh, path: str | Path, *, window_size: tuple[int, int] 
     else:
         p.add_mesh(poly, color="#d98c7a", smooth_shading=True, specular=0.2)
     p.show_grid(xtitle="x (mm)", ytitle="y (mm)", ztitle="z (mm)", font_size=8)
-    if title:
-        p.add_text(title, position="upper_left", font_size=10, color="black")
-    return _shoot(p, mesh, path, elevation_deg, azimuth_deg, 1.15)
+    if title:  # a line of its own above the scene, 10 px from the top and left edges
+        p.add_text(title, position=(10, window_size[1] - 28), font_size=10, color="black")
+    # the grid's tick labels and titles lie outside the mesh's bounds: 1.6 x its bounding sphere keeps them and
+    # the title inside the picture (1.15 clipped the x title at the bottom and ran the top labels into the title)
+    return _shoot(p, mesh, path, elevation_deg, azimuth_deg, 1.6)
 
 
 def aaa_picture(mesh: Mesh, measures: AAAMeasures, path: str | Path, *, window_size: tuple[int, int] = (900, 900)) -> Path:

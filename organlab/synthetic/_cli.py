@@ -9,19 +9,21 @@ from ..session import load_session
 from ._session import make_session
 
 
-def main(argv=None):
-    """``python -m organlab.synthetic OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force]``."""
-    import time
+def parser():
+    """The generator's argument parser (``organlab synth``)."""
 
     ap = OneLineParser(prog="organlab synth", description="Write a synthetic organlab session folder.")
     ap.add_argument("out", help="session folder to write")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--specimen", choices=["aaa", "grooved", "dented"], default="aaa")
+    ap.add_argument("--seed", type=int, default=0, help="random seed of the generated session (default 0)")
+    ap.add_argument("--specimen", choices=["aaa", "grooved", "dented"], default="aaa",
+                    help="aaa: the aneurysm phantom (default); grooved, dented: specimens with concavities no "
+                    "silhouette shows (for voxel colouring)")
     ap.add_argument(
         "--hard", action="store_true", help="hard lighting: a lamp with cast shadows, highlights, +-10 %% exposure, JPEG views"
     )
     ap.add_argument("--small", action="store_true", help="320x240, 12 views, few calibration images (fast)")
-    ap.add_argument("--noise", type=float, default=None, help="pixel noise sigma, grey levels")
+    ap.add_argument("--noise", type=float, default=None,
+                    help="pixel noise sigma, grey levels (default 1.0; 1.5 with --small)")
     ap.add_argument(
         "--png",
         action="store_true",
@@ -34,6 +36,14 @@ def main(argv=None):
     ap.add_argument(
         "--force", action="store_true", help="write into a folder that is not empty (images a previous run listed are replaced)"
     )
+    return ap
+
+
+def main(argv=None):
+    """``python -m organlab.synthetic OUT [--seed N] [--specimen aaa|grooved|dented] [--small] [--hard] [--force]``."""
+    import time
+
+    ap = parser()
     args = ap.parse_args(argv)
     out = Path(args.out)
     if out.exists() and not out.is_dir():

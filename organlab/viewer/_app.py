@@ -12,6 +12,7 @@ running one.  No stage runs here: this is a face.
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..agreement import model_mask
+from ..calibration import needs_calibration
 from ..engine import AgreementFigures, Engine, Reconstruction, Settings
 from ..errors import SessionError
 from ..session import Session, load_session
@@ -27,6 +29,41 @@ from ._live import LiveView
 from ._worker import LatestWorker
 
 __all__ = ["SessionViewer", "Settings", "Result"]
+
+
+def check_result_folder(folder: str | Path, session: Session) -> Path:
+    """A folder written by ``organlab reconstruct`` from ``session``, checked before anything starts.
+
+    Raises
+    ------
+    SessionError
+        One line: the folder is missing, is a file, lacks ``voxels.npz`` or
+        ``mesh.ply``, or its ``report.json`` names another session or other
+        view images.
+    """
+    folder = Path(folder)
+    fix = f"give a folder written by 'organlab reconstruct {session.root} --out DIR'"
+    if not folder.exists():
+        raise SessionError(f"{folder}: result folder does not exist; {fix}")
+    if not folder.is_dir():
+        raise SessionError(f"{folder}: is a file, not a result folder; {fix}")
+    for name in ("voxels.npz", "mesh.ply"):
+        if not (folder / name).is_file():
+            raise SessionError(f"{folder / name}: missing, so {folder} is not a result folder; {fix}")
+    rep = folder / "report.json"
+    if rep.is_file():
+        try:
+            report = json.loads(rep.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:
+            raise SessionError(f"{rep}: cannot be read ({e}); {fix}") from None
+        images = [v.get("image") for v in report.get("views", []) if isinstance(v, dict)]
+        mine = [session.relpath(v.image) for v in session.views]
+        name = report.get("session")
+        if (name is not None and name != session.name) or (images and images != mine):
+            raise SessionError(
+                f"{folder}: made from session '{name}' ({len(images)} views), not from {session.root} "
+                f"('{session.name}', {len(mine)} views); view it with its own session, or {fix}")
+    return folder
 
 
 @dataclasses.dataclass
@@ -96,6 +133,11 @@ class Result:
         return self.reconstruction.color_threshold
 
     @property
+    def report(self) -> dict:
+        """The run's report (as report.json): its ``warnings`` are shown in the panel."""
+        return self.reconstruction.report or {}
+
+    @property
     def figures(self) -> AgreementFigures | None:
         """The agreement figures, as report.json and the CLI summary give them."""
         return self.reconstruction.agreement
@@ -135,35 +177,60 @@ class SessionViewer:
 
     def __init__(self, session: Session | str | Path, *, result: str | Path | None = None, voxel_size: float = 1.0,
                  views: Any = None, host: str = "127.0.0.1", port: int = 8080, stream: bool = True,
-                 verbose: bool = False):
+                 verbose: bool = False, say: Any = None):
+        say = say or (lambda _line: None)
         self.session = session if isinstance(session, Session) else load_session(session)
         s = self.session
         if not s.views:
             raise SessionError(f"{s.json_path}: views: the session has no views to show")
+        folder = None if result is None else check_result_folder(result, s)  # before the server starts
         self.engine = Engine(s, views=views)
         self.view_ids = self.engine.views
-        self.cameras = self.engine.cameras()
-        self.images = self.engine.images
-        model = self.engine.silhouette_model  # background (or backdrop keying), once: a threshold only re-thresholds
-        self.threshold_units = model.units
-        self.auto_thresholds = model.auto_thresholds()
-        autos = [t for t in self.auto_thresholds if t is not None]
-        self.auto_threshold = float(np.median(autos)) if autos else None
         roi = self.engine.roi(Settings())
         self.settings = Settings(voxel_size=float(voxel_size), roi=roi).validate()
         self.result = None
         self.status = "starting"
         self.errors = []
-        self.is_aaa = self.engine.is_aaa  # AAA measures after each re-run, as organlab reconstruct
-        # pymeshlab (finish_surface, in the worker thread) must be imported first in this thread:
-        # imported first in the worker, the process aborted at exit (glibc malloc_consolidate)
-        import pymeshlab  # noqa: F401
+        self._runs = 0  # re-runs shown; the one running is "run {self._runs + 1}"
+        # the server first: its address is printed (say) and the page shows the start-up steps
         self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}")
+        say(f"organlab view: {s.name} at {self.url}  (Ctrl-C stops)")
+        notice = self.live.server.gui.add_markdown("*starting*")
+
+        def step(text):
+            self.status = f"starting: {text}"
+            if hasattr(self, "controls"):
+                self.controls.show_status(self.status)
+            else:
+                notice.content = f"*{self.status}*"
+            say(f"  {self.status}")
+
+        n = len(self.view_ids)
+        step(f"reading {n} view{'s' if n != 1 else ''}")
+        self.images = self.engine.images
+        step("cameras " + ("(the session's calibration.json, or calibrating from its board images)"
+                           if needs_calibration(s) else "(given in session.json)"))
+        self.cameras = self.engine.cameras()
+        step("background and silhouette model")
+        model = self.engine.silhouette_model  # background (or backdrop keying), once: a threshold only re-thresholds
+        self.threshold_units = model.units
+        self.auto_thresholds = model.auto_thresholds()
+        autos = [t for t in self.auto_thresholds if t is not None]
+        self.auto_threshold = float(np.median(autos)) if autos else None
+        self.is_aaa = self.engine.is_aaa  # AAA measures after each re-run, as organlab reconstruct
+        notice.remove()
+        # pymeshlab (finish_surface, in the worker thread) must be imported first in this thread:
+        # imported first in the worker, the process aborted at exit (glibc malloc_consolidate).  After the
+        # silhouette model: numba's parallel kernels must choose their threads before pymeshlab's old libtbb loads
+        import pymeshlab  # noqa: F401
         self.worker = LatestWorker(self._job, on_error=self._error)
         self.controls = Controls(self)
-        if result is not None:
-            self._show_result_folder(Path(result))
+        if folder is not None:
+            step(f"reading {folder}")
+            self._show_result_folder(folder)
         else:
+            self.status = "start-up: reconstructing"
+            self.controls.show_status(self.status)
             self.worker.submit(("stream" if stream else "run", self.settings))
 
     # ------------------------------------------------------------ jobs
@@ -183,6 +250,9 @@ class SessionViewer:
 
     def _job(self, gen, request, check):
         kind, st = request
+        # the first reconstruction is the start-up's; re-runs are numbered from the first change, counting the
+        # runs shown (a request superseded by a newer one, as a dragged slider sends, takes no number)
+        label = "start-up" if gen == 1 and kind == "stream" else f"run {self._runs + 1}"
         t0 = time.perf_counter()
         tm = {}
         last = [t0]
@@ -205,12 +275,12 @@ class SessionViewer:
                 return
             lap(name)
             if name == "silhouettes":
-                self.status = f"run {gen}: carving"
+                self.status = f"{label}: carving"
             elif name == "carving":  # voxels first
                 visible = self.controls.show_voxels or "mesh" not in self.live._handles
                 shown["n"] = self.live.set_voxels(result.occupancy, result.grid, visible=visible)
                 lap("voxels sent")
-                self.status = f"run {gen}: surface"
+                self.status = f"{label}: surface"
             elif name == "coloring" and result is not None:
                 visible = self.controls.show_voxels or "mesh" not in self.live._handles
                 shown["n"] = self.live.set_voxels(result.occupancy, self.engine.grid(st), result.colors,
@@ -222,16 +292,18 @@ class SessionViewer:
                 tm["scene updated"] = time.perf_counter() - t0  # voxels and marching-cubes mesh queued
             elif name == "surface":
                 self._show_surface(result.mesh, result.aaa)
-                self.status = f"run {gen}: agreement"
+                self.status = f"{label}: agreement"
             self.controls.show_status(self.status)
 
-        self.status = f"run {gen}: silhouettes"
+        self.status = f"{label}: silhouettes"
         self.controls.show_status(self.status)
         rec = self.engine.run(st, on_stage=on_stage, cancel=cancel)
         res = Result(rec, gen, time.perf_counter() - t0, tm, shown["n"])
         check()  # a newer request arrived meanwhile: not shown
         self.result = res
-        self.status = f"run {gen}: done in {res.seconds:.2f} s"
+        if label != "start-up":
+            self._runs += 1
+        self.status = f"{label}: done in {res.seconds:.2f} s"
         self.controls.show_result(res)
 
     def _stream(self, st, cancel):
@@ -277,6 +349,7 @@ class SessionViewer:
     # ------------------------------------------------------------ --result
     def _show_result_folder(self, folder):
         rec = self.engine.load_result(folder)
+        rec.report.setdefault("warnings", [])
         for j, (img, cam, m) in enumerate(zip(self.images, self.cameras, rec.masks)):
             self.live.add_view(img, cam, m)
         self.controls.views_added()

@@ -324,6 +324,9 @@ class Controls:
                          + (" (automatic)" if res.settings.color_threshold is None else ""))
             if res.settings.color_threshold is None:  # the slider shows the threshold colouring measured
                 self._set_quietly(self.color_threshold, round(res.color_threshold * 2) / 2)
+        warnings = (getattr(res, "report", None) or {}).get("warnings", [])
+        if warnings:  # the run's own warnings, as organlab reconstruct prints them
+            lines.insert(0, "**Warnings** " + "<br/>".join(f"⚠ {w}" for w in warnings))
         self.measure.content = "  \n".join(lines)
         self.show_status(self.app.status)
         self.select(self._view_index())
