@@ -129,7 +129,7 @@ def sweep(session: Session | str | Path, grid: dict[str, Any], *, settings: Sett
         As in :func:`organlab.reconstruct`; computed once on the client otherwise.
     recalibrate : bool
     progress : callable(done, total), optional
-        Called as results arrive (``organlab._progress.ProgressBar`` in the CLI).
+        Called as results arrive (``organlab.progress.ProgressBar`` in the CLI).
     plots : bool
         With ``out``: write the PNG plots.
 
