@@ -41,7 +41,10 @@ demo: $(STAMP)
 	$(BIN)/organlab reconstruct sample_sessions/aaa_phantom --out demo_out --voxel-size 1 --picture
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider
+	@# the JupyterLab browser test in a process of its own: after the other notebook tests in one process it timed
+	@# out waiting for the threshold picker (passes alone in 22 s; cause not found yet)
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/test_notebook_jupyterlab.py
+	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/test_notebook_jupyterlab.py
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_carving.py
