@@ -29,12 +29,10 @@ FLOORS = {
 ORDER = list(FLOORS)
 #: Test-data generators: above the stages (they may use them), imported by no production code.
 TEST_DATA = {"synthetic", "datasets"}
-#: Modules excused, for now, from the function-local and underscore rules (cycles and floors hold for them too).
-#: Both are files of issue 19's engine branch, still importing inside functions when this branch merged it:
-#: organlab/viewer/__init__.py (a lazy __getattr__; its modules no longer import viser at the top, so the
-#: imports can move up) and organlab/widgets/_calibration.py (three imports of organlab.calibration).
-#: Remove each entry when fixed; the goal is an empty set.
-EXCEPTIONS = {"organlab.viewer", "organlab.widgets._calibration"}
+#: Modules excused from the function-local and underscore rules (cycles and floors hold for them too).
+#: Empty: the viewer's modules load viser inside the functions that need it, so organlab.viewer imports
+#: them at the top (test_heavy_optional_libraries_load_lazily keeps viser out of ``import organlab``).
+EXCEPTIONS: set[str] = set()
 
 
 def _module_name(path):
@@ -306,3 +304,25 @@ def test_exported_names_are_annotated(package):
     pending = {n for n in ANNOTATED[package] if _unannotated(getattr(mod, n))}
     assert pending == ANNOTATED[package], f"{package}: now annotated, drop from ANNOTATED's pending set: " \
                                           f"{ANNOTATED[package] - pending}"
+
+
+def test_heavy_optional_libraries_load_lazily():
+    """``import organlab``, its faces' packages and ``organlab --help`` load none of the heavy optional libraries.
+
+    viser, ipywidgets, pymeshlab, pyvista and gmsh load inside the functions that use them (the
+    architecture's rule); the faces' packages import organlab's own modules at the top.
+    """
+    import subprocess
+    import sys
+
+    heavy = ("viser", "ipywidgets", "pymeshlab", "pyvista", "gmsh")
+    code = ("import sys, runpy, contextlib, io\n"
+            "import organlab, organlab.viewer, organlab.widgets, organlab.batch\n"
+            "sys.argv = ['organlab', '--help']\n"
+            "with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
+            "    runpy.run_module('organlab', run_name='__main__')\n"
+            f"print(sorted(m for m in {heavy!r} if m in sys.modules))\n")
+    env = {**__import__("os").environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout

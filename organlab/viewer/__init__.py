@@ -7,23 +7,12 @@
 * :class:`CaptureViewer` -- a LiveView following a capture
   (``organlab capture ... --view``).
 
-viser is imported only when one of them is used.
+viser (a heavy optional library) is imported only when one of them is
+constructed: importing this package does not load it.
 """
 
+from ._app import SessionViewer, Settings
+from ._capture import CaptureViewer
+from ._live import LiveView
+
 __all__ = ["CaptureViewer", "LiveView", "SessionViewer", "Settings"]
-
-
-def __getattr__(name):
-    if name == "LiveView":
-        from ._live import LiveView
-
-        return LiveView
-    if name == "CaptureViewer":
-        from ._capture import CaptureViewer
-
-        return CaptureViewer
-    if name in ("SessionViewer", "Settings"):
-        from . import _app
-
-        return getattr(_app, name)
-    raise AttributeError(f"module 'organlab.viewer' has no attribute {name!r}")

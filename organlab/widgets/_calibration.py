@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..calibration import board_points, detect_board, fit_intrinsics
 from ..errors import CalibrationError
 from ._common import ipywidgets, new_figure, redraw
 
@@ -62,8 +63,6 @@ class CalibrationChecker:
     """
 
     def __init__(self, images, pattern, *, names, image_size, corners=None, **fit):
-        from ..calibration import detect_board, fit_intrinsics
-
         images = list(images)
         names = [str(n) for n in names]
         if len(names) != len(images) or len(set(names)) != len(names):
@@ -124,8 +123,6 @@ class CalibrationChecker:
         CalibrationError
             An unknown name, or too few images left to fit (the previous fit is kept).
         """
-        from ..calibration import fit_intrinsics
-
         names = tuple(dict.fromkeys(str(n) for n in names))
         unknown = [n for n in names if n not in self.images]
         if unknown:
@@ -164,8 +161,6 @@ class CalibrationChecker:
             fitted board pose; None when the image is not in the fit.
         """
         import cv2
-
-        from ..calibration import board_points
 
         det = self.corners.get(name)
         ext = self.calibration.extrinsics.get(name)
