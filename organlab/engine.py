@@ -712,6 +712,41 @@ class Engine:
         hit = self._cache.get(stage)
         return hit is not None and hit[0] == self.key(stage, settings)
 
+    def kept(self, until: str) -> dict:
+        """The kept results of the stages up to ``until``, to go on from them in another Engine (:meth:`keep`).
+
+        Returns
+        -------
+        dict of str -> (key, result, seconds)
+            Per kept stage: the settings its result depends on (:meth:`key`),
+            its typed result and its time (None when not timed).  Plain data: a
+            sweep sends it from the task that computed a threshold's silhouettes
+            and poses to the tasks that carve at that threshold.
+        """
+        if until not in STAGES:
+            raise SettingsError("until", f"must be one of {STAGES}, got {until!r}")
+        names = STAGES[:STAGES.index(until) + 1]
+        return {n: (*self._cache[n], self.timings.get(n)) for n in names if n in self._cache}
+
+    def keep(self, kept: dict) -> None:
+        """Take stage results from another Engine's :meth:`kept` as if computed here.
+
+        The other engine must have had the same session, calibration, images
+        and views (the keys hold the settings only); a later :meth:`run` re-uses
+        each kept stage whose key matches its settings, as for its own.
+        """
+        unknown = [n for n in kept if n not in STAGES]
+        if unknown:
+            raise SettingsError("kept", f"holds unknown stages {unknown}; stages are {STAGES}")
+        for name in STAGES:
+            if name in kept:
+                key, result, seconds = kept[name]
+                self._cache[name] = (tuple(key), result)
+                if seconds is None:
+                    self.timings.pop(name, None)
+                else:
+                    self.timings[name] = seconds
+
     def run(self, settings: Settings | None = None, *, on_stage: Callable[[str, Any], None] | None = None,
             cancel: Callable[[], bool] | None = None, until: str | None = None,
             progress: Callable[[str], Any] | None = None) -> Reconstruction:

@@ -15,8 +15,10 @@ one, in this process with the same code::
 Work is shared, not repeated: the client loads and calibrates a session and
 decodes its images once and sends them to each worker once; settings that
 differ only from the carving stage on (voxel size, method, colour
-threshold, ...) run in one task through one :class:`~organlab.engine.Engine`,
-which computes their silhouettes once.  With ``out``, each result is
+threshold, ...) share one computation of their silhouettes and poses (a
+task of its own, whose result the tasks of each carving go on from, see
+:func:`~organlab.batch._plan.plan_leaves`); settings sharing a carving run
+in one task through one :class:`~organlab.engine.Engine`.  With ``out``, each result is
 written atomically into its own folder named by its settings, a re-run
 skips the finished ones, and the table (``summary.csv``), the recommended
 setting (``recommended.json``) and the plots (``plots/*.png``) are written
@@ -36,7 +38,7 @@ from ..errors import OrganlabError
 from ..preflight import available_memory, check_grid_memory
 from ..engine import Settings
 from ..session import Session, load_session
-from ._plan import expand, parse_values, plan_tasks, result_name
+from ._plan import expand, parse_values, plan_leaves, plan_tasks, result_name
 from ._run import SWEEP_FILE, Job, clean_partial, dask_client, execute, finished, n_workers, worker_memory, write_result
 from ._table import SETTING_COLUMNS, plot_sweep, recommend, row_of
 from ._task import prepare
@@ -192,8 +194,11 @@ def sweep(session: Session | str | Path, grid: dict[str, Any], *, settings: Sett
                 prepared["p"] = prepare(session, calibration=calibration, recalibrate=recalibrate, settings=runnable[0])
             return prepared["p"]
 
-        jobs = [Job(root, prep, g, [result_name(s) for s in g], label=session.name)
-                for g in plan_tasks(runnable, n_workers=0 if c is None else n_workers(c))]
+        # one job per carving (a setting each when there are fewer than workers); the jobs of one threshold
+        # share its calibration, silhouettes and poses, computed once (first, as a task of their own on a cluster)
+        groups = plan_leaves(plan_tasks(runnable), n_workers=0 if c is None else n_workers(c))
+        jobs = [Job(root, prep, leaf, [result_name(s) for s in leaf], label=session.name, group=gi, first=li == 0)
+                for gi, leaves in enumerate(groups) for li, leaf in enumerate(leaves)]
 
         def on_result(job, entries):
             for name, entry in zip(job.names, entries):

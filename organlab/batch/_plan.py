@@ -10,7 +10,7 @@ import math
 
 from ..engine import DEPENDS, STAGES, Settings
 
-__all__ = ["parse_values", "expand", "result_name", "plan_tasks", "LATE_FIELDS"]
+__all__ = ["parse_values", "expand", "result_name", "plan_tasks", "plan_leaves", "LATE_FIELDS"]
 
 #: Settings read only from the carving stage on (:data:`organlab.engine.DEPENDS`): settings that differ
 #: only in these share their calibration and silhouettes, so one task runs them all through one Engine,
@@ -242,3 +242,52 @@ def plan_tasks(settings, *, n_workers=1):
         tasks[big:big + 1] = [g[:cut], g[cut:]]
     tasks.sort(key=lambda g: -sum(map(_cost, g)))
     return tasks
+
+
+def _carving_key(s):
+    d = s.to_dict()
+    return tuple(json.dumps(d[k], default=list) for k in _CARVING_FIELDS if k in d)
+
+
+def plan_leaves(groups, *, n_workers=1):
+    """Split each group of :func:`plan_tasks` into the tasks that go on from its shared first stages.
+
+    One task per carving in a group (its settings run one after another
+    through one Engine, which keeps the carving); with fewer tasks than
+    workers, the tasks of several settings are split into one task per
+    setting (each recomputes its carving, a small cost next to a worker left
+    idle).  The group's calibration, silhouettes and poses are computed once,
+    by a task of their own (:func:`organlab.batch._task.run_prefix`), when
+    it has more than one task.
+
+    Parameters
+    ----------
+    groups : list of list of Settings
+        :func:`plan_tasks`'s tasks (settings that share their silhouettes, in order).
+    n_workers : int
+
+    Returns
+    -------
+    list of list of list of Settings
+        Per group, its tasks, in the group's order.
+
+    Examples
+    --------
+    >>> s = expand({"threshold": [10.0, 20.0], "method": ["hull", "coloring"], "tolerance": [0, 1]})
+    >>> [[len(t) for t in g] for g in plan_leaves(plan_tasks(s), n_workers=2)]
+    [[2, 2], [2, 2]]
+    >>> [[len(t) for t in g] for g in plan_leaves(plan_tasks(s[:2]), n_workers=2)]
+    [[1, 1]]
+    """
+    out = []
+    for g in groups:
+        leaves = []
+        for s in g:
+            if leaves and _carving_key(leaves[-1][-1]) == _carving_key(s):
+                leaves[-1].append(s)
+            else:
+                leaves.append([s])
+        out.append(leaves)
+    if sum(len(leaves) for leaves in out) < n_workers:
+        out = [[[s] for leaf in leaves for s in leaf] for leaves in out]
+    return out

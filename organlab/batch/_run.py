@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..errors import OrganlabError
 from ..preflight import atomic_output_dir
-from ._task import run_task
+from ._task import run_prefix, run_task
 
 __all__ = ["Job", "execute", "dask_client", "finished", "write_result", "clean_partial"]
 
@@ -34,12 +34,14 @@ SWEEP_FILE = "sweep.json"  # in each result folder: the settings and session it 
 class Job:
     """One task to run: a prepared session (or the error that prevented it), settings and their folder names."""
 
-    def __init__(self, key, prepare, settings, names, *, label):
+    def __init__(self, key, prepare, settings, names, *, label, group=None, first=True):
         self.key = key  # the session's key (several jobs of one session share its scatter)
         self.prepare = prepare  # () -> Prepared, called once per key on the client
         self.settings = settings  # list of Settings
         self.names = names  # folder name of each setting
         self.label = label  # the session's name, for the rows
+        self.group = group  # jobs of one session with the same group share their first stages (run_prefix)
+        self.first = first  # the group's first job: its first entry counts the shared stages
 
 
 def finished(folder, settings_dict, session_root):
@@ -151,13 +153,23 @@ def execute(jobs, *, client, files, on_result):
     A job whose preparation raises an organlab error, or whose task fails
     (a bug, a worker lost too often), gives error entries: the other jobs go on.
     """
+    shared = {}  # (session key, group) -> number of jobs: a group of one runs its first stages itself
+    for job in jobs:
+        if job.group is not None:
+            shared[job.key, job.group] = shared.get((job.key, job.group), 0) + 1
     if client is None:
-        prepared = {}
+        prepared, prefixes = {}, {}
         for job in jobs:
             try:
                 if job.key not in prepared:
                     prepared[job.key] = job.prepare()
-                entries = run_task(prepared[job.key], [s.to_dict() for s in job.settings], files=files)
+                kept = None
+                if shared.get((job.key, job.group), 0) > 1:
+                    if (job.key, job.group) not in prefixes:
+                        prefixes[job.key, job.group] = run_prefix(prepared[job.key], job.settings[0].to_dict())
+                    kept = prefixes[job.key, job.group]
+                entries = run_task(prepared[job.key], [s.to_dict() for s in job.settings], files=files, kept=kept,
+                                   first=job.first)
             except OrganlabError as e:
                 entries = _error_entries(job, str(e))
             on_result(job, entries)
@@ -165,7 +177,7 @@ def execute(jobs, *, client, files, on_result):
     from dask.distributed import as_completed
 
     scattered, futures = {}, as_completed()
-    pending = {}
+    pending, prefixes, users = {}, {}, {}
     for i, job in enumerate(jobs):
         try:
             if job.key not in scattered:
@@ -174,12 +186,26 @@ def execute(jobs, *, client, files, on_result):
         except OrganlabError as e:
             on_result(job, _error_entries(job, str(e)))
             continue
-        f = client.submit(run_task, scattered[job.key], [s.to_dict() for s in job.settings], files=files,
-                          pure=False, priority=len(jobs) - i, key=f"organlab-task-{i}-{uuid.uuid4().hex}")
+        kept = None
+        if shared.get((job.key, job.group), 0) > 1:
+            g = job.key, job.group
+            if g not in prefixes:  # before every job: the shared stages (their cost is unknown) start first
+                prefixes[g] = client.submit(run_prefix, scattered[job.key], job.settings[0].to_dict(), pure=False,
+                                            priority=2 * len(jobs) - i, key=f"organlab-prefix-{i}-{uuid.uuid4().hex}")
+            kept = prefixes[g]
+            users[g] = users.get(g, 0) + 1
+        f = client.submit(run_task, scattered[job.key], [s.to_dict() for s in job.settings], files=files, kept=kept,
+                          first=job.first, pure=False, priority=len(jobs) - i,
+                          key=f"organlab-task-{i}-{uuid.uuid4().hex}")
         pending[f.key] = job
         futures.add(f)
     for f in futures:
         job = pending.pop(f.key)
+        g = job.key, job.group
+        if g in users:
+            users[g] -= 1
+            if users[g] == 0:  # every task of the group is back: its shared stages can go
+                prefixes.pop(g).release()
         try:
             entries = f.result()
         except OrganlabError as e:

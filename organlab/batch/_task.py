@@ -21,7 +21,11 @@ from ..engine import STAGES, Engine, Settings
 from ..errors import OrganlabError
 from ..session import Session, load_session
 
-__all__ = ["Prepared", "prepare", "run_task"]
+__all__ = ["Prepared", "prepare", "run_prefix", "run_task", "PREFIX_UNTIL"]
+
+#: The stages a sweep's settings sharing a threshold share (calibration, silhouettes, poses): one task
+#: computes them, the tasks that carve at that threshold go on from its result (:meth:`Engine.kept`).
+PREFIX_UNTIL = "poses"
 
 
 @dataclass(frozen=True)
@@ -110,7 +114,37 @@ def _files_of(rec):
         return {p.name: p.read_bytes() for p in sorted(Path(tmp).iterdir()) if p.is_file()}
 
 
-def run_task(prepared, settings, *, files=True):
+def _engine(prepared):
+    session = prepared.session
+    cal = Calibration.from_dict(prepared.calibration, image_size=session.image_size, where=f"{session.root} (calibration)")
+    return Engine(session, calibration=cal, images=list(prepared.images), max_memory=_worker_memory())
+
+
+def run_prefix(prepared, settings, *, until=PREFIX_UNTIL):
+    """Run the stages up to ``until`` for ``settings`` (a dict), for the tasks that go on from them.
+
+    Returns
+    -------
+    dict
+        ``kept`` (:meth:`Engine.kept`, or None after an error), ``stages_run``,
+        ``seconds`` (wall time), ``error`` (one line, or None): given to
+        :func:`run_task` as its ``kept``.
+    """
+    with _one_thread():
+        t0 = time.perf_counter()
+        engine = _engine(prepared)
+        out = {"kept": None, "stages_run": [], "seconds": 0.0, "error": None}
+        try:
+            engine.run(Settings.from_dict(settings), until=until)
+            out["kept"] = engine.kept(until)
+            out["stages_run"] = [k for k in STAGES if engine.computed[k]]
+        except (OrganlabError, ValueError) as e:
+            out["error"] = str(e).splitlines()[0] if str(e) else type(e).__name__
+        out["seconds"] = time.perf_counter() - t0
+        return out
+
+
+def run_task(prepared, settings, *, files=True, kept=None, first=True):
     """Reconstruct ``prepared`` at each of ``settings``, in order, through one Engine.
 
     Parameters
@@ -132,17 +166,26 @@ def run_task(prepared, settings, *, files=True):
         from the setting before), ``error``
         (one line, or None).  A setting that fails with an organlab error
         (bad input, nothing carved) is an error entry; the others still run.
+    kept : dict, optional
+        What :func:`run_prefix` returned for these settings' first stages:
+        they are taken, not recomputed (its error is every setting's error).
+    first : bool
+        With ``kept``: count the prefix's stages and time in the first
+        setting's entry (one task of those sharing a prefix does).
     """
     with _one_thread():
-        return _run(prepared, settings, files)
+        return _run(prepared, settings, files, kept, first)
 
 
-def _run(prepared, settings, files):
-    session = prepared.session
-    cal = Calibration.from_dict(prepared.calibration, image_size=session.image_size, where=f"{session.root} (calibration)")
-    engine = Engine(session, calibration=cal, images=list(prepared.images), max_memory=_worker_memory())
+def _run(prepared, settings, files, kept=None, first=True):
+    if kept is not None and kept["error"] is not None:
+        return [{"settings": dict(d), "report": None, "files": None, "seconds": 0.0, "stages_run": [],
+                 "error": kept["error"]} for d in settings]
+    engine = _engine(prepared)
+    if kept is not None:
+        engine.keep(kept["kept"])
     out = []
-    for d in settings:
+    for i, d in enumerate(settings):
         t0 = time.perf_counter()
         entry = {"settings": dict(d), "report": None, "files": None, "seconds": 0.0, "error": None}
         before = dict(engine.computed)
@@ -155,5 +198,8 @@ def _run(prepared, settings, files):
         except (OrganlabError, ValueError) as e:
             entry["error"] = str(e).splitlines()[0] if str(e) else type(e).__name__
         entry["seconds"] = time.perf_counter() - t0
+        if kept is not None and first and i == 0:  # the shared stages, counted where they ran
+            entry["stages_run"] = [k for k in STAGES if k in kept["stages_run"] or k in entry.get("stages_run", ())]
+            entry["seconds"] += kept["seconds"]
         out.append(entry)
     return out
