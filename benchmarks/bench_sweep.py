@@ -9,8 +9,10 @@ Timed: ``organlab.batch.sweep`` with ``workers=0`` (in this process, one numba t
 task runs) and with a running ``LocalCluster`` of ``--workers`` processes (one thread each).  Both
 are warmed first (numba's kernels loaded from its cache, in this process and in every worker), so
 the ratio compares the sweeps, not start-up; the cluster's start-up is printed apart.  The machine
-may be shared: the 1-minute load average before and after each run is printed with it, and
-``--repeat`` keeps the best of several runs of each.
+may be shared: serial and parallel runs alternate (``--repeat`` pairs, default 3; the best wall
+time of each is kept), the 1-minute load average before and after each run is printed with it,
+and so is the CPU time (user + sys) of this process and of each worker: the busiest worker's CPU
+against the serial run's is what the ratio would be with a core for each worker.
 
 Usage::
 
@@ -43,23 +45,34 @@ def _load():
     return os.getloadavg()[0]
 
 
-def _timed(label, fn, repeat):
-    best, loads = None, []
-    for _ in range(repeat):
-        before = _load()
-        t0 = time.perf_counter()
-        out = fn()
-        t = time.perf_counter() - t0
-        loads.append((before, _load()))
-        best = t if best is None or t < best else best
-    print(f"  {label:<28} {best:7.1f} s   (load average {', '.join(f'{a:.1f}->{b:.1f}' for a, b in loads)})", flush=True)
-    return best, out
+def _cpu():
+    """CPU time (user + sys) of this process, every thread, s."""
+    t = os.times()
+    return t.user + t.system
+
+
+def _cpu_of(client):
+    """CPU time of each worker process (user + sys), s; {} without a client."""
+    return {} if client is None else dict(client.run(_cpu))
+
+
+def _timed(label, fn, client=None):
+    """One run of ``fn``: wall time, CPU of this process and of each worker, load average before and after."""
+    before, c0, w0 = _load(), _cpu(), _cpu_of(client)
+    t0 = time.perf_counter()
+    out = fn()
+    t = time.perf_counter() - t0
+    c, w = _cpu() - c0, {k: v - w0[k] for k, v in _cpu_of(client).items() if k in w0}
+    workers = f", workers {' + '.join(f'{v:.1f}' for v in w.values())} s" if w else ""
+    print(f"  {label:<28} {t:7.1f} s wall   CPU: this process {c:.1f} s{workers}   (load {before:.1f}->{_load():.1f})",
+          flush=True)
+    return {"wall": t, "cpu": c, "workers": w}, out
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--voxel-size", type=float, default=2.0)
     a = ap.parse_args(argv)
 
@@ -73,9 +86,10 @@ def main(argv=None):
     cal = calibration_for(session)[0]
     settings = {"voxel_size": a.voxel_size}
     n = len(ob.expand(GRID, ob.Settings(**settings)))
-    tasks = ob.plan_tasks(ob.expand(GRID, ob.Settings(**settings)), n_workers=a.workers)
+    groups = ob.plan_leaves(ob.plan_tasks(ob.expand(GRID, ob.Settings(**settings))), n_workers=a.workers)
+    tasks = [t for g in groups for t in g]
     print(f"bench_sweep: {session.name}, {n} settings ({' x '.join(f'{len(v)} {k}' for k, v in GRID.items())}) at "
-          f"{a.voxel_size:g} mm, {len(tasks)} tasks; {os.cpu_count()} CPU cores, load average {_load():.1f}")
+          f"{a.voxel_size:g} mm, {len(tasks)} tasks after {len(groups)} shared first stages; {os.cpu_count()} CPU cores, load average {_load():.1f}")
     tmp = Path(tempfile.mkdtemp(prefix="bench_sweep-"))
     try:
         _warm()
@@ -85,7 +99,7 @@ def main(argv=None):
             shutil.rmtree(out, ignore_errors=True)
             return ob.sweep(session, GRID, settings=settings, out=out, calibration=cal, workers=0, plots=False)
 
-        t_serial, ref = _timed("serial (workers=0)", serial, a.repeat)
+        runs = {"serial": [], "parallel": []}
         t0 = time.perf_counter()
         with ob.dask_client(workers=a.workers) as client:
             t_start = time.perf_counter() - t0
@@ -97,13 +111,28 @@ def main(argv=None):
                 shutil.rmtree(out, ignore_errors=True)
                 return ob.sweep(session, GRID, settings=settings, out=out, calibration=cal, client=client, plots=False)
 
-            t_par, df = _timed(f"LocalCluster ({a.workers} workers)", parallel, a.repeat)
+            for _ in range(a.repeat):  # interleaved: both see the same load
+                r, ref = _timed("serial (workers=0)", serial)
+                runs["serial"].append(r)
+                r, df = _timed(f"LocalCluster ({a.workers} workers)", parallel, client)
+                runs["parallel"].append(r)
+        best = {k: min(v, key=lambda r: r["wall"]) for k, v in runs.items()}
+        t_serial, t_par = best["serial"]["wall"], best["parallel"]["wall"]
+        cpu_serial = min(r["cpu"] for r in runs["serial"])
+        cpu_workers = min(max(r["workers"].values()) for r in runs["parallel"])
+        cpu_client = min(r["cpu"] for r in runs["parallel"])
+        print(f"  best of {a.repeat}: serial {t_serial:.1f} s, parallel {t_par:.1f} s wall; CPU: serial {cpu_serial:.1f} s, "
+              f"busiest worker {cpu_workers:.1f} s (both {min(sum(r['workers'].values()) for r in runs['parallel']):.1f} s), "
+              f"client {cpu_client:.1f} s")
+        print(f"  CPU-bound estimate for an idle machine (busiest worker's CPU / serial CPU): {cpu_workers / cpu_serial:.2f}")
         cols = ["volume_mm3", "mesh_volume_mm3", "agreement_mean_iou", "agreement_worst_iou"]
         same = all(np.array_equal(df[c].to_numpy(), ref[c].to_numpy()) for c in cols)
         for name in df["name"]:
             for f in ("mesh.ply", "voxels.npz"):
                 same &= (tmp / "parallel" / "results" / name / f).read_bytes() == (tmp / "serial" / "results" / name / f).read_bytes()
-        print(f"  parallel / serial            {t_par / t_serial:7.2f}    (target <= 0.65); results identical: {same}")
+        pairs = [p["wall"] / q["wall"] for p, q in zip(runs["parallel"], runs["serial"])]
+        print(f"  parallel / serial            {t_par / t_serial:7.2f}    (target <= 0.65; best walls); each pair "
+              f"{', '.join(f'{x:.2f}' for x in pairs)}; results identical: {same}")
         print(f"  per setting: serial {t_serial / n:.1f} s, parallel {t_par / n:.1f} s; "
               f"sum of the settings' own times {ref['seconds'].sum():.1f} s serial, {df['seconds'].sum():.1f} s on the workers")
         rec = df.attrs["recommended"]

@@ -43,7 +43,7 @@ from ._run import SWEEP_FILE, Job, clean_partial, dask_client, execute, finished
 from ._table import SETTING_COLUMNS, plot_sweep, recommend, row_of
 from ._task import prepare
 
-__all__ = ["sweep", "batch", "recommend", "parse_values", "expand", "result_name", "plan_tasks", "dask_client", "Settings"]
+__all__ = ["sweep", "batch", "recommend", "parse_values", "expand", "result_name", "plan_tasks", "plan_leaves", "dask_client", "Settings"]
 
 
 def _root(session):
@@ -194,11 +194,11 @@ def sweep(session: Session | str | Path, grid: dict[str, Any], *, settings: Sett
                 prepared["p"] = prepare(session, calibration=calibration, recalibrate=recalibrate, settings=runnable[0])
             return prepared["p"]
 
-        # one job per carving (a setting each when there are fewer than workers); the jobs of one threshold
-        # share its calibration, silhouettes and poses, computed once (first, as a task of their own on a cluster)
+        # one job per carving, or per setting (plan_leaves); the jobs of one threshold share its calibration,
+        # silhouettes and poses (and its carving when it has one), computed once, by a task of their own
         groups = plan_leaves(plan_tasks(runnable), n_workers=0 if c is None else n_workers(c))
-        jobs = [Job(root, prep, leaf, [result_name(s) for s in leaf], label=session.name, group=gi, first=li == 0)
-                for gi, leaves in enumerate(groups) for li, leaf in enumerate(leaves)]
+        jobs = [Job(root, prep, leaf, [result_name(s) for s in leaf], label=session.name, group=gi, first=li == 0,
+                    until=until) for gi, (until, leaves) in enumerate(groups) for li, leaf in enumerate(leaves)]
 
         def on_result(job, entries):
             for name, entry in zip(job.names, entries):

@@ -252,13 +252,15 @@ def _carving_key(s):
 def plan_leaves(groups, *, n_workers=1):
     """Split each group of :func:`plan_tasks` into the tasks that go on from its shared first stages.
 
-    One task per carving in a group (its settings run one after another
-    through one Engine, which keeps the carving); with fewer tasks than
-    workers, the tasks of several settings are split into one task per
-    setting (each recomputes its carving, a small cost next to a worker left
-    idle).  The group's calibration, silhouettes and poses are computed once,
-    by a task of their own (:func:`organlab.batch._task.run_prefix`), when
-    it has more than one task.
+    A group of several carvings (voxel sizes, tolerances) shares its
+    calibration, silhouettes and poses, and has one task per carving (its
+    settings run one after another through one Engine, which keeps the
+    carving; one task per setting when there are fewer tasks than workers).
+    A group of one carving shares the carving too, and has one task per
+    setting.  The shared stages are computed once, by a task of their own
+    (:func:`organlab.batch._task.run_prefix`), which the others wait for:
+    their cost is not known before (the pose fit runs at some thresholds
+    only), so no worker holds a whole group while another idles.
 
     Parameters
     ----------
@@ -268,26 +270,33 @@ def plan_leaves(groups, *, n_workers=1):
 
     Returns
     -------
-    list of list of list of Settings
-        Per group, its tasks, in the group's order.
+    list of (str, list of list of Settings)
+        Per group: the last stage its tasks share (``'poses'`` or
+        ``'carving'``; None for a group of one setting) and its tasks, in the
+        group's order.
 
     Examples
     --------
     >>> s = expand({"threshold": [10.0, 20.0], "method": ["hull", "coloring"], "tolerance": [0, 1]})
-    >>> [[len(t) for t in g] for g in plan_leaves(plan_tasks(s), n_workers=2)]
-    [[2, 2], [2, 2]]
-    >>> [[len(t) for t in g] for g in plan_leaves(plan_tasks(s[:2]), n_workers=2)]
-    [[1, 1]]
+    >>> [(until, [len(t) for t in tasks]) for until, tasks in plan_leaves(plan_tasks(s), n_workers=2)]
+    [('poses', [2, 2]), ('poses', [2, 2])]
+    >>> plan_leaves(plan_tasks(expand({"method": ["hull", "coloring"]})))[0][0]
+    'carving'
     """
     out = []
     for g in groups:
-        leaves = []
+        carvings = []
         for s in g:
-            if leaves and _carving_key(leaves[-1][-1]) == _carving_key(s):
-                leaves[-1].append(s)
+            if carvings and _carving_key(carvings[-1][-1]) == _carving_key(s):
+                carvings[-1].append(s)
             else:
-                leaves.append([s])
-        out.append(leaves)
-    if sum(len(leaves) for leaves in out) < n_workers:
-        out = [[[s] for leaf in leaves for s in leaf] for leaves in out]
-    return out
+                carvings.append([s])
+        if len(g) == 1:
+            out.append([None, carvings])
+        elif len(carvings) == 1:
+            out.append(["carving", [[s] for s in g]])
+        else:
+            out.append(["poses", carvings])
+    if sum(len(tasks) for _, tasks in out) < n_workers:
+        out = [[until, [[s] for t in tasks for s in t]] for until, tasks in out]
+    return [tuple(x) for x in out]

@@ -34,7 +34,7 @@ SWEEP_FILE = "sweep.json"  # in each result folder: the settings and session it 
 class Job:
     """One task to run: a prepared session (or the error that prevented it), settings and their folder names."""
 
-    def __init__(self, key, prepare, settings, names, *, label, group=None, first=True):
+    def __init__(self, key, prepare, settings, names, *, label, group=None, first=True, until=None):
         self.key = key  # the session's key (several jobs of one session share its scatter)
         self.prepare = prepare  # () -> Prepared, called once per key on the client
         self.settings = settings  # list of Settings
@@ -42,6 +42,7 @@ class Job:
         self.label = label  # the session's name, for the rows
         self.group = group  # jobs of one session with the same group share their first stages (run_prefix)
         self.first = first  # the group's first job: its first entry counts the shared stages
+        self.until = until  # the last stage the group's jobs share
 
 
 def finished(folder, settings_dict, session_root):
@@ -155,7 +156,7 @@ def execute(jobs, *, client, files, on_result):
     """
     shared = {}  # (session key, group) -> number of jobs: a group of one runs its first stages itself
     for job in jobs:
-        if job.group is not None:
+        if job.group is not None and job.until is not None:
             shared[job.key, job.group] = shared.get((job.key, job.group), 0) + 1
     if client is None:
         prepared, prefixes = {}, {}
@@ -166,7 +167,8 @@ def execute(jobs, *, client, files, on_result):
                 kept = None
                 if shared.get((job.key, job.group), 0) > 1:
                     if (job.key, job.group) not in prefixes:
-                        prefixes[job.key, job.group] = run_prefix(prepared[job.key], job.settings[0].to_dict())
+                        prefixes[job.key, job.group] = run_prefix(prepared[job.key], job.settings[0].to_dict(),
+                                                                  until=job.until)
                     kept = prefixes[job.key, job.group]
                 entries = run_task(prepared[job.key], [s.to_dict() for s in job.settings], files=files, kept=kept,
                                    first=job.first)
@@ -190,7 +192,8 @@ def execute(jobs, *, client, files, on_result):
         if shared.get((job.key, job.group), 0) > 1:
             g = job.key, job.group
             if g not in prefixes:  # before every job: the shared stages (their cost is unknown) start first
-                prefixes[g] = client.submit(run_prefix, scattered[job.key], job.settings[0].to_dict(), pure=False,
+                prefixes[g] = client.submit(run_prefix, scattered[job.key], job.settings[0].to_dict(), until=job.until,
+                                            pure=False,
                                             priority=2 * len(jobs) - i, key=f"organlab-prefix-{i}-{uuid.uuid4().hex}")
             kept = prefixes[g]
             users[g] = users.get(g, 0) + 1
