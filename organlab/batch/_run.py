@@ -22,7 +22,7 @@ from ..errors import OrganlabError
 from ..preflight import atomic_output_dir
 from ._task import run_prefix, run_task
 
-__all__ = ["Job", "execute", "dask_client", "finished", "write_result", "clean_partial"]
+__all__ = ["Job", "execute", "dask_client", "finished", "write_result", "clean_partial", "start_libraries", "worker_plugin"]
 
 #: Set in every worker process of the LocalCluster before it starts: one thread per library,
 #: since each worker runs one task at a time on one core.
@@ -131,6 +131,41 @@ def dask_client(*, client=None, scheduler=None, workers=None):
         cluster.close()
 
 
+def start_libraries():
+    """Load the native libraries a task needs in the calling thread: numba's thread pool, then pymeshlab.
+
+    Run in each worker's main thread as it starts (:func:`worker_plugin`).
+    A worker runs its tasks in a thread of its own, which ends when the
+    worker closes; pymeshlab (with its bundled libtbb) first loaded in such a
+    thread corrupts the heap when that thread or the process ends: glibc
+    printed ``malloc_consolidate(): unaligned fastbin chunk detected`` as the
+    cluster's workers closed, after every result was back (the viewer's worker
+    thread had the same abort, organlab/viewer/_app.py).  numba's threads
+    start first, so that its threading layer is chosen before pymeshlab's
+    libtbb is loaded.
+    """
+    import numba
+
+    numba.get_num_threads()  # starts numba's thread pool (its threading layer is chosen now)
+    try:
+        import pymeshlab  # noqa: F401
+    except ImportError:  # pragma: no cover - pymeshlab is pinned; without it finishing says so in the task
+        pass
+
+
+def worker_plugin():
+    """A ``distributed.WorkerPlugin`` running :func:`start_libraries` as each worker starts (restarted ones too)."""
+    from distributed import WorkerPlugin
+
+    class StartLibraries(WorkerPlugin):
+        name = "organlab-start-libraries"
+
+        def setup(self, worker):  # in the worker's event loop: its main thread
+            start_libraries()
+
+    return StartLibraries()
+
+
 def worker_memory(client):
     """Memory limit of the smallest worker, bytes (None when the workers set none)."""
     if client is None:
@@ -178,6 +213,7 @@ def execute(jobs, *, client, files, on_result):
         return
     from dask.distributed import as_completed
 
+    client.register_plugin(worker_plugin(), name="organlab-start-libraries")
     scattered, futures = {}, as_completed()
     pending, prefixes, users = {}, {}, {}
     for i, job in enumerate(jobs):
