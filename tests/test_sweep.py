@@ -374,3 +374,20 @@ def test_cli_errors_are_one_line(tmp_path):
                            capture_output=True, text=True, timeout=120, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
         assert r.returncode == 2 and what in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert main(["batch", str(tmp_path / "none"), "--out", str(tmp_path / "o"), "--workers", "0", "--quiet"]) == 2
+
+
+def test_shared_first_stages_are_a_task_of_their_own():
+    # a threshold with one carving (hull and coloring at one voxel size): the carving is shared too, a task per method
+    one = ob.plan_leaves(ob.plan_tasks(ob.expand({"threshold": [10.0, 35.0], "method": ["hull", "coloring"]})))
+    assert [(until, [[s.method for s in t] for t in tasks]) for until, tasks in one] == [
+        ("carving", [["hull"], ["coloring"]]), ("carving", [["hull"], ["coloring"]])]
+    # several carvings per threshold: calibration, silhouettes and poses shared, a task per carving
+    two = ob.plan_leaves(ob.plan_tasks(ob.expand({"threshold": [10.0], "voxel_size": [2.0, 1.0],
+                                                  "method": ["hull", "coloring"]})), n_workers=2)
+    assert [until for until, _ in two] == ["poses"] and [len(t) for t in two[0][1]] == [2, 2]
+    # fewer tasks than workers: a task per setting
+    four = ob.plan_leaves(ob.plan_tasks(ob.expand({"threshold": [10.0], "voxel_size": [2.0, 1.0],
+                                                   "method": ["hull", "coloring"]})), n_workers=4)
+    assert [len(t) for t in four[0][1]] == [1, 1, 1, 1]
+    # a lone setting runs its stages itself
+    assert ob.plan_leaves([[ob.Settings()]]) == [(None, [[ob.Settings()]])]
