@@ -249,7 +249,8 @@ def _carving_key(s):
     return tuple(json.dumps(d[k], default=list) for k in _CARVING_FIELDS if k in d)
 
 
-def plan_leaves(groups: list[list[Settings]], *, n_workers: int = 1) -> list[tuple[str | None, list[list[Settings]]]]:
+def plan_leaves(groups: list[list[Settings]], *,
+                n_workers: int = 1) -> list[tuple[str | None, list[list[Settings]]]]:
     """Split each group of :func:`plan_tasks` into the tasks that go on from its shared first stages.
 
     A group of several carvings (voxel sizes, tolerances) shares its
