@@ -110,7 +110,7 @@ class AngleAudit:
         return out
 
 
-def audited_angles(doc: dict, angles_deg) -> np.ndarray:
+def audited_angles(doc: dict, angles_deg: np.ndarray | list) -> np.ndarray:
     """Each view's table-angle error measured by the capture's angle audit, or NaN where none was.
 
     The audit (``session.json`` ``capture.audit``, written by
