@@ -113,12 +113,14 @@ def main(argv=None):
             B = cal.turntable.camera.R
             used = np.array([np.degrees(np.arctan2((B.T @ c.R)[1, 0], (B.T @ c.R)[0, 0])) for c in r.cameras])
             e0 = np.abs(cmd - true)
-            e1 = np.abs((used - true + 180.0) % 360.0 - 180.0)
+            diff = (used - true + 180.0) % 360.0 - 180.0
+            e1 = np.abs(diff)
+            em = np.abs(diff - np.median(diff))  # modulo a common turn (the specimen's orientation on the plate)
             Rt, tt = np.array(truth["views"][0]["R"]), np.array(truth["views"][0]["t"])
             ct = -Rt.T @ tt
             cc, cr = cal.cameras(s)[0].center, r.cameras[0].center
-            print(f"  angle error median/max {np.median(e0):.3f}/{e0.max():.3f} -> {np.median(e1):.3f}/{e1.max():.3f} deg; "
-                  f"camera centre error {np.linalg.norm(cc - ct):.2f} -> {np.linalg.norm(cr - ct):.2f} mm "
+            print(f"  angle error median/max {np.median(e0):.3f}/{e0.max():.3f} -> {np.median(e1):.3f}/{e1.max():.3f} deg "
+                  f"(modulo a common turn {np.median(em):.3f}/{em.max():.3f}); camera centre error {np.linalg.norm(cc - ct):.2f} -> {np.linalg.norm(cr - ct):.2f} mm "
                   f"(modulo a turn about the axis {np.linalg.norm(_cyl(cc) - _cyl(ct)):.2f} -> "
                   f"{np.linalg.norm(_cyl(cr) - _cyl(ct)):.2f} mm); slip {r.slip}; candidates {r.gate.get('candidates')}")
         if a.voxel_size:
