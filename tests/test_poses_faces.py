@@ -57,11 +57,12 @@ def test_drifting_table_recovered_with_and_without_the_audit(tmp_path):
     sils = silhouettes(s)
     cmd = np.array([v.angle_deg for v in s.views])
     e0 = _err(cmd, true)
-    assert np.median(e0) > 1.0 and e0.max() > 2.5  # measured 1.56 / 3.30 degrees
+    assert np.median(e0) > 1.0 and e0.max() > 2.5  # measured 1.69 / 2.95 degrees
 
     r = refine_poses(s, cal, sils, mode="auto")
     assert r.to_dict()["angle_prior"] == "the commanded angles"
-    # the tangents alone: measured at 320 x 240 (see docs/trust.md for 640 x 480)
+    # the tangents alone: measured at 320 x 240 'auto' skips (largest view 0.23 px), the angles stay
+    # 1.69 / 2.95 degrees off (at 640 x 480 'on' applies them: 0.27 / 0.63, docs/trust.md)
     e1 = _err(_used_angles(cal, r.cameras), true)
     if r.accepted:
         assert np.median(e1) < np.median(e0) / 2
@@ -80,7 +81,8 @@ def test_drifting_table_recovered_with_and_without_the_audit(tmp_path):
     assert d["angle_prior"].startswith("the capture's angle audit (24 of 24 views")
     e2 = _err(_used_angles(cal, ra.cameras), true)
     # the targets (median <= 0.2, max <= 0.5 degrees) whether the gate applies the tangents' fit
-    # or refuses it (the views then at the audited angles)
+    # or refuses it (the views then at the audited angles). Measured: refused (left-out views
+    # 0.161 -> 0.117 px, 0.044 px < the 0.05 px gain needed), posed at the audit: 0.015 / 0.049 degrees
     assert ra.accepted or d["audit_applied"], ra.reason
     assert np.median(e2) <= 0.2 and e2.max() <= 0.5, (np.median(e2), e2.max())
 
