@@ -8,12 +8,17 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
 * ``drift_aaa7`` / ``drift_dented``: the table lost steps, the true angles drift
   linearly to +3 degrees over the turn plus 0.3 degrees of jitter per stop;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
-* ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on.
+* ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
+* ``drift_dented+audit`` / ``drift_aaa7+audit``: the drifting tables with the capture's angle
+  audit (emulated: each stop's true angle plus the audit's error, sd 0.03 degrees; docs/capture.md
+  measured it below 0.01 degrees at 640 x 480) in ``session.json`` ``capture.audit``, the prior;
+* ``sample``: the bundled sample (``sample_sessions/aaa_phantom``, correct), decision and volume only.
 
 For each: the time of :func:`organlab.poses.refine_poses` (best of
-``--repeat``, silhouettes and calibration excluded), its decision, the
-per-view angle error (median / max) and the camera-centre error before and
-after, against ``truth.json``.  With ``--voxel-size`` the whole pipeline also
+``--repeat``, wall and CPU, silhouettes and calibration excluded), its decision, the
+per-view angle error of the cameras it returns (median / max) and the camera-centre error before and
+after, against ``truth.json`` (also modulo a turn about the table axis: the specimen's orientation
+on the plate, which no silhouette shows).  With ``--voxel-size`` the whole pipeline also
 runs with ``--refine-poses off`` and ``on`` and prints the mesh volume error
 against the specimen's exact volume.
 
@@ -50,6 +55,21 @@ def scenes(n=36, size=(640, 480)):
     }
 
 
+def with_audit(s, truth, sd=0.03, seed=0):
+    """``s`` with an emulated angle audit in ``s.raw['capture']['audit']`` (in memory)."""
+    cmd = np.array([v.angle_deg for v in s.views])
+    true = np.array([v.get("true_angle_deg", v["angle_deg"]) for v in truth["views"]])
+    err = true - cmd + np.random.default_rng(seed).normal(0.0, sd, len(cmd))
+    err -= err[0]
+    s.raw["capture"] = {"audit": [{"commanded_deg": float(a), "measured_deg": float(a + e), "error_deg": float(e)}
+                                  for a, e in zip(cmd, err)]}
+    return s
+
+
+def _cyl(c):
+    return np.array([np.hypot(c[0], c[1]), c[2]])
+
+
 def main(argv=None):
     from organlab.calibration import calibration_for
     from organlab.poses import refine_poses
@@ -59,18 +79,25 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, default=Path("/tmp/organlab_bench_poses"))
-    ap.add_argument("--scenes", nargs="+", default=list(scenes()))
+    ap.add_argument("--scenes", nargs="+", default=list(scenes()) + ["drift_dented+audit", "drift_aaa7+audit", "sample"])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--voxel-size", type=float, default=None)
     a = ap.parse_args(argv)
     for name in a.scenes:
-        folder = a.cache / f"{name}_36"
-        if not (folder / "truth.json").is_file():
-            t0 = time.perf_counter()
-            make_session(folder, **scenes()[name])
-            print(f"rendered {folder} in {time.perf_counter() - t0:.0f} s")
+        base_name, audit = name.split("+")[0], name.endswith("+audit")
+        if name == "sample":
+            folder = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+            truth = None
+        else:
+            folder = a.cache / f"{base_name}_36"
+            if not (folder / "truth.json").is_file():
+                t0 = time.perf_counter()
+                make_session(folder, **scenes()[base_name])
+                print(f"rendered {folder} in {time.perf_counter() - t0:.0f} s")
+            truth = json.loads((folder / "truth.json").read_text())
         s = load_session(folder)
-        truth = json.loads((folder / "truth.json").read_text())
+        if audit:
+            with_audit(s, truth)
         cal, _ = calibration_for(s)
         sils = silhouettes(s)
         times = []
@@ -79,25 +106,37 @@ def main(argv=None):
             r = refine_poses(s, cal, sils, mode="on")
             times.append((time.perf_counter() - t0, time.process_time() - c0))
         wall, cpu = min(times)
-        cmd = np.array([v.angle_deg for v in s.views])
-        true = np.array([v.get("true_angle_deg", v["angle_deg"]) for v in truth["views"]])
-        e0 = np.abs(cmd - true)
-        e1 = np.abs(cmd + (r.angle_corrections_deg if r.accepted else 0.0) - true)
-        Rt, tt = np.array(truth["views"][0]["R"]), np.array(truth["views"][0]["t"])
-        ct = -Rt.T @ tt
-        c0 = np.linalg.norm(cal.cameras(s)[0].center - ct)
-        c1 = np.linalg.norm(r.cameras[0].center - ct)
         print(f"{name}: {wall:.2f} s wall, {cpu:.2f} s CPU; largest view residual before {np.nanmax(r.before_px):.3f} px; {r.reason}")
-        print(f"  angle error median/max {np.median(e0):.3f}/{e0.max():.3f} -> {np.median(e1):.3f}/{e1.max():.3f} deg; "
-              f"camera centre error {c0:.2f} -> {c1:.2f} mm; slip {r.slip}; candidates {r.gate.get('candidates')}")
+        if truth is not None:
+            cmd = np.array([v.angle_deg for v in s.views])
+            true = np.array([v.get("true_angle_deg", v["angle_deg"]) for v in truth["views"]])
+            B = cal.turntable.camera.R
+            used = np.array([np.degrees(np.arctan2((B.T @ c.R)[1, 0], (B.T @ c.R)[0, 0])) for c in r.cameras])
+            e0 = np.abs(cmd - true)
+            diff = (used - true + 180.0) % 360.0 - 180.0
+            e1 = np.abs(diff)
+            em = np.abs(diff - np.median(diff))  # modulo a common turn (the specimen's orientation on the plate)
+            Rt, tt = np.array(truth["views"][0]["R"]), np.array(truth["views"][0]["t"])
+            ct = -Rt.T @ tt
+            cc, cr = cal.cameras(s)[0].center, r.cameras[0].center
+            print(f"  angle error median/max {np.median(e0):.3f}/{e0.max():.3f} -> {np.median(e1):.3f}/{e1.max():.3f} deg "
+                  f"(modulo a common turn {np.median(em):.3f}/{em.max():.3f}); camera centre error {np.linalg.norm(cc - ct):.2f} -> {np.linalg.norm(cr - ct):.2f} mm "
+                  f"(modulo a turn about the axis {np.linalg.norm(_cyl(cc) - _cyl(ct)):.2f} -> "
+                  f"{np.linalg.norm(_cyl(cr) - _cyl(ct)):.2f} mm); slip {r.slip}; candidates {r.gate.get('candidates')}")
         if a.voxel_size:
             from organlab.pipeline import reconstruct
 
-            for mode in ("off", "on"):
+            vols = {}
+            for mode in ("off", "auto", "on"):
                 t0 = time.perf_counter()
                 rep = reconstruct(s, voxel_size=a.voxel_size, refine_poses=mode).report
-                print(f"  {a.voxel_size:g} mm, --refine-poses {mode}: mesh volume {rep['mesh_volume_error_pct']:+.2f} % "
-                      f"({time.perf_counter() - t0:.0f} s)")
+                vols[mode] = rep["mesh_volume_mm3"]
+                err = rep.get("mesh_volume_error_pct")
+                print(f"  {a.voxel_size:g} mm, --refine-poses {mode}: mesh volume "
+                      + (f"{err:+.2f} % " if err is not None else f"{rep['mesh_volume_mm3']:.0f} mm3 ")
+                      + f"({rep['poses']['reason'][:60]}; {time.perf_counter() - t0:.0f} s)")
+            print(f"  volume change by the refinement: auto {100 * (vols['auto'] / vols['off'] - 1):+.3f} %, "
+                  f"on {100 * (vols['on'] / vols['off'] - 1):+.3f} %")
     return 0
 
 

@@ -137,6 +137,39 @@ tuner.figure()
 tuner.widget()
 
 # %% [markdown]
+# ## The thesis's failure, and its repair: a bumped camera
+#
+# The thesis reconstructed its phantom but failed on the real specimen: the calibration no longer
+# matched the views.  Here the camera is bumped (0.7 degrees, 1.4 mm) *after* the board images, on a
+# simulated session of another AAA of the family (12 views of 320 x 240).  Carved with the board
+# calibration as it is (`refine_poses="off"`, the thesis's way), the model loses a large part of its
+# volume; with `refine_poses="auto"` (the default) the views' outer epipolar tangents disagree, the
+# shared camera pose is refitted from the silhouettes, views left out of the fit confirm it, and the
+# model is built with the corrected cameras (docs/trust.md, "Poses that correct themselves").
+
+# %%
+import tempfile
+
+from organlab.synthetic import make_session
+
+bumped = Path(tempfile.mkdtemp()) / "bumped"
+make_session(bumped, seed=3, specimen="aaa-7", image_size=(320, 240), n_views=12, n_intrinsic=0, n_turntable=8,
+             n_background=5, supersample=2, board_supersample=3, noise_sigma=1.0, include_camera=True,
+             include_poses=False, camera_bump={"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)})
+bumped_session = ol.load_session(bumped)
+runs = {mode: ol.reconstruct(bumped_session, voxel_size=2.0, refine_poses=mode) for mode in ("off", "auto")}
+for mode, rec in runs.items():
+    rep = rec.report
+    print(f"refine_poses={mode!r}: mesh volume {rep['mesh_volume_error_pct']:+.1f} % vs the truth, "
+          f"mean IoU {rep['agreement']['mean_iou']:.3f}; poses: {rep['poses']['reason']}")
+fixed = runs["auto"].report["poses"]
+print(f"camera turned back by {fixed['camera_rotation_deg']:.2f} degrees; tangent RMS "
+      f"{fixed['tangent_rms_px']['before_median']:.2f} -> {fixed['tangent_rms_px']['after_median']:.2f} px")
+# measured: -42.3 % with the bumped calibration, -1.8 % refined (12 views, 2 mm: the hull of 12 views)
+assert runs["off"].report["mesh_volume_error_pct"] < -20
+assert fixed["accepted"] and abs(runs["auto"].report["mesh_volume_error_pct"]) < 5
+
+# %% [markdown]
 # ## Exercises
 #
 # **Exercise 1.**  Carve the sub-voxel hull from only every third view (12 views) on `grid`,

@@ -15,7 +15,7 @@
 See ``docs/capture.md``.
 """
 
-from ._audit import AUDIT_LIMIT_DEG, AngleAudit, board_rotation
+from ._audit import AUDIT_LIMIT_DEG, AngleAudit, audited_angles, board_rotation
 from ._cameras import CaptureCamera, FolderCamera, OpenCVCamera
 from ._errors import (
     AngleAuditError,
@@ -41,6 +41,7 @@ __all__ = [
     "FolderCamera",
     "AngleAudit",
     "board_rotation",
+    "audited_angles",
     "AUDIT_LIMIT_DEG",
     "capture_session",
     "run_capture",

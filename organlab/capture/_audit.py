@@ -18,7 +18,7 @@ from ..camera import Camera
 from ..session import Pattern
 from ._errors import CaptureError
 
-__all__ = ["board_rotation", "AngleAudit"]
+__all__ = ["board_rotation", "AngleAudit", "audited_angles"]
 
 #: Default limit, deg.  On the simulated rig (320x240 and 640x480, noise 1.5
 #: grey levels) the audit error stays below 0.05 deg (measured in
@@ -108,3 +108,54 @@ class AngleAudit:
             out.update(flagged=True, reason=f"measured {measured % 360.0:.2f} deg for commanded {commanded_deg:g} deg "
                                             f"({err:+.2f} deg, limit {self.limit_deg:g}): lost steps, a slipping plate or a moved board")
         return out
+
+
+def audited_angles(doc: dict, angles_deg: np.ndarray | list) -> np.ndarray:
+    """Each view's table-angle error measured by the capture's angle audit, or NaN where none was.
+
+    The audit (``session.json`` ``capture.audit``, written by
+    :func:`organlab.capture.capture_session`) measures the angle at every stop
+    of the turntable board images; the views are taken at the same stops.
+    Pose refinement (:func:`organlab.poses.refine_poses`) uses these as its
+    prior for the views' angles.
+
+    Parameters
+    ----------
+    doc : dict
+        The session document (``Session.raw``).
+    angles_deg : (n,) float
+        The views' commanded table angles, degrees.
+
+    Returns
+    -------
+    (n,) float64
+        ``measured - commanded``, degrees, wrapped to [-180, 180); NaN for a
+        view whose stop has no audit entry (no audit, no board found there,
+        or a flagged stop).
+
+    Examples
+    --------
+    >>> doc = {"capture": {"audit": [{"commanded_deg": 0.0, "measured_deg": 0.0, "error_deg": 0.0},
+    ...                              {"commanded_deg": 10.0, "measured_deg": 10.4, "error_deg": 0.4}]}}
+    >>> audited_angles(doc, [0.0, 10.0, 20.0]).round(2).tolist()
+    [0.0, 0.4, nan]
+    """
+    angles = np.asarray(angles_deg, dtype=np.float64).ravel()
+    out = np.full(len(angles), np.nan)
+    cap = doc.get("capture") if isinstance(doc, dict) else None
+    entries = cap.get("audit") if isinstance(cap, dict) else None
+    if not isinstance(entries, list):
+        return out
+    found = {}
+    for e in entries:
+        try:
+            a, err = float(e["commanded_deg"]), e.get("error_deg")
+        except (KeyError, TypeError, ValueError):
+            continue
+        if err is None or not np.isfinite(float(err)) or e.get("flagged"):
+            continue
+        found[round(a % 360.0, 6)] = float(err)
+    for i, a in enumerate(angles):
+        if np.isfinite(a):
+            out[i] = found.get(round(a % 360.0, 6), np.nan)
+    return out

@@ -10,6 +10,9 @@ view on is found as a step in the pairs' residuals and fitted as a rigid move
 on the plate.  The result is used only when views left out of the fit agree
 better with the others afterwards (leave-out folds): a rotation-symmetric
 specimen, which hides its angles, is left alone and the report says so.
+When the capture's angle audit measured the stops (``session.json``
+``capture.audit``, :func:`organlab.capture.audited_angles`), the views'
+angles are held to the measured ones instead of the commanded ones.
 
 ``refine_poses(session, calibration, silhouettes, mode=...)`` is the stage's
 one function; it returns a :class:`PoseRefinement` (``.cameras`` to carve

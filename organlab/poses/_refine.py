@@ -9,6 +9,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..camera import Camera
+from ..capture import audited_angles
 from ..masks import Silhouette, as_arrays
 from ..session import Session
 from . import _model
@@ -41,6 +42,9 @@ SLIP_MIN_MM = 0.25
 MAX_ROTATION_DEG = 5.0
 MAX_SHIFT_MM = 20.0
 MAX_ANGLE_DEG = 15.0
+#: 'auto' refines also when the capture's angle audit measured a stop this far (degrees) from its
+#: commanded angle (relative to the first view): the audit's own error is below 0.05 deg (docs/capture.md).
+AUDIT_FLAG_DEG = 0.2
 
 
 @dataclass
@@ -70,6 +74,11 @@ class PoseRefinement:
         Left-out views' median RMS before/after, px, per fold and overall.
     flagged : list of int
         Views over :data:`FLAG_PX` before.
+    prior : str
+        What the views' angles were held to: the commanded angles, or the capture's angle audit.
+    audit_applied : bool
+        Not ``accepted``, but the views are posed at the angles the capture's audit measured
+        (more than :data:`AUDIT_FLAG_DEG` from the commanded ones somewhere).
     """
 
     cameras: list
@@ -87,6 +96,8 @@ class PoseRefinement:
     flagged: list = field(default_factory=list)
     names: list | None = None
     seconds: float = 0.0
+    prior: str = "the commanded angles"
+    audit_applied: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready (the ``poses`` entry of ``report.json``)."""
@@ -97,6 +108,8 @@ class PoseRefinement:
             "model": self.model,
             "flag_px": FLAG_PX,
             "flagged_views": [self._name(i) for i in self.flagged],
+            "angle_prior": self.prior,
+            "audit_applied": bool(self.audit_applied),
             "seconds": round(float(self.seconds), 3),
         }
         if len(self.before_px):
@@ -189,7 +202,8 @@ def _build_model(session, calibration, cameras):
         posed = [v.pose is not None for v in session.views]
     tt = getattr(calibration, "turntable", None)
     if not any(posed) and tt is not None and np.all(np.isfinite(angles)):
-        return Model("turntable", n, angles, base=tt.camera), ""
+        audit = audited_angles(session.raw, angles)
+        return Model("turntable", n, angles, base=tt.camera, audit_deg=audit if np.isfinite(audit).any() else None), ""
     if all(posed):
         C = np.stack([c.center for c in cameras])
         m = C.mean(0)
@@ -215,6 +229,7 @@ def _build_model(session, calibration, cameras):
 
 def _refine(session, calibration, covs, cameras, mode, names):
     model, why = _build_model(session, calibration, cameras)
+    model_in = model
     base = dict(cameras=cameras, accepted=False, mode=mode, names=names)
     if model is None:
         return PoseRefinement(reason=f"not refined: {why}", **base)
@@ -239,9 +254,15 @@ def _refine(session, calibration, covs, cameras, mode, names):
     flagged = [int(i) for i in np.nonzero(before > FLAG_PX)[0]]
     base.update(model=model.kind, before_px=before, after_px=before, flagged=flagged,
                 angle_corrections_deg=np.zeros(model.n))
-    if mode == "auto" and not flagged:
+    audit_m = model.angle_prior()[0] if model.audit_deg is not None else np.zeros(model.n)
+    audit_off = float(np.max(np.abs(audit_m)))
+    if model.audit_deg is not None:
+        base["prior"] = (f"the capture's angle audit ({int(np.isfinite(model.audit_deg).sum())} of {model.n} views, "
+                         f"up to {audit_off:.2f} deg from the commanded angles)")
+    if mode == "auto" and not flagged and audit_off <= AUDIT_FLAG_DEG:
+        also = f" and the angle audit measured every stop within {AUDIT_FLAG_DEG} deg" if model.audit_deg is not None else ""
         return PoseRefinement(reason=f"skipped: every view agrees (largest tangent RMS {np.nanmax(before):.2f} px "
-                              f"<= {FLAG_PX} px)", **base)
+                              f"<= {FLAG_PX} px){also}", **base)
     # candidates: the shared camera pose alone, the angles alone, both (each with a slip when
     # one is found); the leave-out gate picks the simplest that views left out agree best with
     kinds = ((True, False), (False, True), (True, True)) if model.kind == "turntable" else ((False, True),)
@@ -249,7 +270,7 @@ def _refine(session, calibration, covs, cameras, mode, names):
     if model.kind == "turntable" and model.n >= 8:  # a slip, looked for once with the camera pose free (angles held)
         m = replace(model, shared=True, angles_free=False)
         p = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
-        x, _ = p.fit(np.zeros(m.n_params))
+        x, _ = p.fit(m.start())
         _, _, m_s, slip = _try_slip(p, m, x, H, cen, f, low)
         slip_view = m_s.slip_view if slip is not None else None
     if slip_view is not None:  # simplest first: the specimen moved, nothing else
@@ -258,7 +279,7 @@ def _refine(session, calibration, covs, cameras, mode, names):
     for shared, free in kinds:
         m = replace(model, shared=shared, angles_free=free, slip_view=slip_view)
         p = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
-        x, _ = p.fit(np.zeros(m.n_params))
+        x, _ = p.fit(m.start())
         cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x)))
     pick = cands[0]
     for c in cands[1:]:  # a richer model must do better by a margin
@@ -277,19 +298,22 @@ def _refine(session, calibration, covs, cameras, mode, names):
                 slip=slip, gate=gate)
     base.update(info)
     big = _too_large(rot, shift, d, slip)
+    kept = "poses left as calibrated"
+    if audit_off > AUDIT_FLAG_DEG:  # refused: the views are still posed at the angles the audit measured
+        base.update(cameras=model_in.cameras(model_in.start(), cam0), audit_applied=True)
+        kept = "the views posed at the capture's audited angles"
     if gate["accepted"] and big:  # silhouettes this far off make any pose fit them "better": not a rig that moved
         return PoseRefinement(reason=(f"refused: the correction is too large to be a rig that moved ({big}); "
-                                      "check the silhouettes (threshold, backdrop) and the calibration; poses left "
-                                      "as calibrated"), **base)
+                                      f"check the silhouettes (threshold, backdrop) and the calibration; {kept}"), **base)
     if gate["accepted"]:
-        base.update(cameras=refined, accepted=True)
+        base.update(cameras=refined, accepted=True, audit_applied=False)
         what = f"the views left out of the fit agree better ({gate['before_px']:.3f} -> {gate['after_px']:.3f} px)"
         return PoseRefinement(reason=f"applied: {what}", **base)
     base["angle_corrections_deg"] = d
     return PoseRefinement(
         reason=(f"refused: the views left out of the fit agree no better ({gate['before_px']:.3f} -> "
                 f"{gate['after_px']:.3f} px): the silhouettes do not pin the poses better than the calibration "
-                "(a rotation-symmetric specimen hides its angles); poses left as calibrated"),
+                f"(a rotation-symmetric specimen hides its angles); {kept}"),
         **base,
     )
 

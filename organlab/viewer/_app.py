@@ -24,6 +24,7 @@ from ..calibration import needs_calibration
 from ..engine import AgreementFigures, Engine, Reconstruction, Settings
 from ..errors import SessionError
 from ..session import Session, load_session
+from ._frustums import PoseFrustums
 from ._gui import Controls
 from ._live import LiveView
 from ._worker import LatestWorker
@@ -225,6 +226,7 @@ class SessionViewer:
         import pymeshlab  # noqa: F401
         self.worker = LatestWorker(self._job, on_error=self._error)
         self.controls = Controls(self)
+        self.pose_frustums = PoseFrustums(self.live)  # the cameras before and after the poses stage
         if folder is not None:
             step(f"reading {folder}")
             self._show_result_folder(folder)
@@ -305,6 +307,7 @@ class SessionViewer:
             self._runs += 1
         self.status = f"{label}: done in {res.seconds:.2f} s"
         self.controls.show_result(res)
+        self.pose_frustums.show(self.cameras, rec.cameras, (rec.report or {}).get("poses"))
 
     def _stream(self, st, cancel):
         """Carve view by view, showing each view and the hull so far (start-up)."""
