@@ -1156,7 +1156,7 @@ def _hashable(v):
 
 def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timings, settings):
     volume = grid.volume_of(occupancy)
-    m = measure(mesh)
+    m = measure(mesh).to_dict()
     cam0 = cameras[0]
     camera = {"K": cam0.K.tolist(), "dist": cam0.dist.tolist(), "image_size": list(cam0.image_size)}
     if cal.rms_px is not None:
