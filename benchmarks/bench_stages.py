@@ -24,8 +24,11 @@ memory from its board images when that file is missing (as
 * ``command``: the whole default ``organlab reconstruct SESSION --out DIR
   --voxel-size VS`` (true cameras: a copy by
   :func:`organlab.synthetic.with_true_cameras`, no calibration) in a new
-  process each time: its wall time and peak resident set (VmHWM at its end),
-  best of ``--command-repeat``.
+  process each time, step by step (``benchmarks/_steps.py``: start-up,
+  imports, session load, calibration load, silhouettes, poses, hull field,
+  marching cubes, finishing, AAA measures, occupancy, agreement, report,
+  writing outputs): each step's wall and CPU time and the peak resident set
+  during it, best of ``--command-repeat`` by CPU time.
 
 Time: best of ``--repeat`` runs after one warm-up (numba compilation and cache
 loading excluded; best-of because the machine is shared), wall and CPU (all
@@ -57,33 +60,33 @@ from _common import session_cameras, vm_mb  # benchmarks/_common.py (scripts run
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# the whole command in a new process: its wall time and its own peak resident set
-_COMMAND = """
-import json, sys, time
-t0 = time.perf_counter()
-from organlab.cli import main
-code = main(["reconstruct", sys.argv[1], "--out", sys.argv[2], "--voxel-size", sys.argv[3]])
-wall = time.perf_counter() - t0
-hwm = [int(l.split()[1]) / 1024 for l in open("/proc/self/status") if l.startswith("VmHWM:")]
-rep = json.load(open(sys.argv[2] + "/report.json"))
-print("BENCH", json.dumps({"code": code, "wall": wall, "peak_mb": hwm[0] if hwm else float("nan"),
-                           "timings": rep.get("timings_s", {})}))
-"""
+STEPS = Path(__file__).resolve().parent / "_steps.py"  # the whole command, step by step, in a new process
 
 
 def run_command(session_dir, vs, repeat):
-    """Best-of-``repeat`` wall time, peak MB and stage timings of ``organlab reconstruct`` in a new process."""
+    """Best-of-``repeat`` figures of ``organlab reconstruct`` in a new process, step by step (benchmarks/_steps.py).
+
+    Returns a dict: ``wall`` (the process, start-up included), ``cpu`` (the script's process
+    time), ``peak_mb`` and ``steps`` (step -> its row of the best run, by CPU time: the
+    machine is shared, CPU varies less than wall).
+    """
     best = None
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as out:
-            r = subprocess.run([sys.executable, "-c", _COMMAND, str(session_dir), out + "/res", f"{vs:g}"],
+            t0 = time.perf_counter()
+            r = subprocess.run([sys.executable, str(STEPS), str(session_dir), out + "/res", f"{vs:g}"],
                                capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-        line = [x for x in r.stdout.splitlines() if x.startswith("BENCH ")]
+            wall = time.perf_counter() - t0
+        line = [x for x in r.stdout.splitlines() if x.startswith("STEPS ")]
         if r.returncode or not line:
             raise RuntimeError(f"organlab reconstruct at {vs} mm failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
         res = json.loads(line[-1][6:])
-        if best is None or res["wall"] < best["wall"]:
+        res["steps"].insert(0, {"step": "start-up", "wall": wall - res["wall"], "cpu": float("nan"),
+                                "peak_mb": float("nan"), "added_mb": float("nan")})
+        res["process_wall"] = wall
+        if best is None or res["cpu"] < best["cpu"]:
             best = res
+    best["steps"] = {r["step"]: r for r in best["steps"]}
     return best
 
 
@@ -202,15 +205,26 @@ def main():
             mem = f"{rb[3] / ra[3]:5.2f}x added memory" if ra[3] >= 1.0 else "added memory < 1 MB before"
             print(f"  {st:<8} {a_:g} -> {b_:g} mm: {rb[0] / ra[0]:5.2f}x wall, {rb[1] / max(ra[1], 1e-9):5.2f}x CPU, {mem}")
     if commands:
-        print(f"\nwhole default command (organlab reconstruct, true cameras, new process; best of {a.command_repeat})")
-        print(f"{'voxel':>6} {'wall s':>8} {'peak MB':>8}   stage timings from its report (s)")
-        for vs, c in commands.items():
-            st = ", ".join(f"{k} {v:.2f}" for k, v in c["timings"].items())
-            print(f"{vs:>6g} {c['wall']:8.2f} {c['peak_mb']:8.0f}   {st}")
         vss = list(commands)
+        print(f"\nwhole default command (organlab reconstruct, true cameras, a new process each; best of "
+              f"{a.command_repeat} by CPU): per step wall s / CPU s / peak MB (VmHWM during the step)")
+        names = list(dict.fromkeys(k for c in commands.values() for k in c["steps"]))
+        print(f"{'step':<18}" + "".join(f"{f'{vs:g} mm':>26}" for vs in vss))
+        for n in names:
+            cells = []
+            for vs in vss:
+                r = commands[vs]["steps"].get(n)
+                cells.append(" " * 26 if r is None else f"{r['wall']:8.2f} {r['cpu']:7.2f} {r['peak_mb']:8.0f}  ")
+            print(f"{n:<18}" + "".join(cells))
+        print(f"{'whole process':<18}" + "".join(f"{c['process_wall']:8.2f} {c['cpu']:7.2f} {c['peak_mb']:8.0f}  "
+                                                 for c in commands.values()))
+        print("growth per halving of the voxel (CPU ratio; whole process: wall and peak ratios)")
         for a_, b_ in zip(vss, vss[1:]):
-            print(f"  {a_:g} -> {b_:g} mm: {commands[b_]['wall'] / commands[a_]['wall']:5.2f}x wall, "
-                  f"{commands[b_]['peak_mb'] / commands[a_]['peak_mb']:5.2f}x peak")
+            ca, cb = commands[a_], commands[b_]
+            grow = [f"{n} {cb['steps'][n]['cpu'] / ca['steps'][n]['cpu']:.2f}x" for n in names
+                    if n in ca["steps"] and n in cb["steps"] and ca["steps"][n]["cpu"] >= 0.005]
+            print(f"  {a_:g} -> {b_:g} mm: whole {cb['process_wall'] / ca['process_wall']:.2f}x wall, "
+                  f"{cb['peak_mb'] / ca['peak_mb']:.2f}x peak; " + ", ".join(grow))
     if 1.0 in per_voxel:
         sil = next(r for r in rows if r[0] == "silhouettes")
         st = [per_voxel[1.0][k] for k in ("hull", "surface", "finish", "aaa")]

@@ -10,7 +10,7 @@ The whole pipeline, one public function per stage::
     field = ol.hull_field(sils, cal.cameras(s), grid, sparse=True)
     mesh = ol.mesh_from_field(field, grid)
     mesh, steps = ol.finish_surface(mesh, voxel_size=1.0)   # repaired, remeshed
-    ol.measure(mesh)                             # volume, area, watertight
+    ol.measure(mesh)                             # MeshMeasures: volume, area, watertight
 
 Stages, one module (or package) each: :mod:`organlab.session` (session
 folders), :mod:`organlab.camera` (the camera model),

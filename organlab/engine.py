@@ -218,7 +218,6 @@ class CalibrationStage:
     seconds: float | None = None
 
 
-@dataclass(frozen=True)
 class CarvingStage:
     """The carved voxel model.
 
@@ -226,13 +225,26 @@ class CarvingStage:
     ----------
     grid : VoxelGrid
     occupancy : (nx, ny, nz) bool
+        Given, or made from ``field`` when first read (``BandField.occupancy``): one byte per
+        voxel of the grid (251 MB at 0.25 mm on the sample), so not held while the surface is
+        finished and measured, which need only the band.
     field : organlab.carving.BandField or None
         The sub-voxel hull field (``hull='subvoxel'``).
     """
 
-    grid: VoxelGrid
-    occupancy: np.ndarray
-    field: Any = None
+    def __init__(self, grid: VoxelGrid, occupancy: np.ndarray | None, field: Any = None) -> None:
+        if occupancy is None and field is None:
+            raise ValueError("CarvingStage needs an occupancy or a field")
+        self.grid, self._occupancy, self.field = grid, occupancy, field
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        if self._occupancy is None:
+            self._occupancy = self.field.occupancy()
+        return self._occupancy
+
+    def __repr__(self) -> str:
+        return f"CarvingStage(grid={self.grid!r}, field={self.field!r})"
 
 
 @dataclass(frozen=True)
@@ -863,10 +875,10 @@ class Engine:
             occupancy, field = carve(sils, cameras, grid, tolerance=settings.tolerance), None
         else:  # the field in a narrow band about the surface: cost grows with the surface, not the volume
             field = hull_field(sils, cameras, grid, tolerance=settings.tolerance, progress=bar, sparse=True)
-            occupancy = field.occupancy()
+            occupancy = None  # made when first read (CarvingStage.occupancy): after the surface
         bar(len(cameras), len(cameras))
         bar.close()
-        if not occupancy.any():
+        if not (field.n_inside() if occupancy is None else occupancy.any()):
             where = "the views" if self.session is None else self.session.json_path
             raise SessionError(
                 f"{where}: carving left no voxel: the silhouettes do not agree with the cameras "
@@ -1179,7 +1191,7 @@ def _hashable(v):
 
 def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timings, settings):
     volume = grid.volume_of(occupancy)
-    m = measure(mesh)
+    m = measure(mesh).to_dict()
     cam0 = cameras[0]
     camera = {"K": cam0.K.tolist(), "dist": cam0.dist.tolist(), "image_size": list(cam0.image_size)}
     if cal.rms_px is not None:

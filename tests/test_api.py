@@ -66,14 +66,14 @@ def test_snippet_gives_the_mesh_of_organlab_reconstruct(sample, tmp_path):
     cli_mesh = read_ply(out / "mesh.ply")
     np.testing.assert_allclose(cli_mesh.vertices, mesh.vertices, atol=1e-4)  # PLY stores float32: ~1e-5 mm at 200 mm
     np.testing.assert_array_equal(cli_mesh.faces, mesh.faces)
-    assert report["mesh_volume_mm3"] == pytest.approx(m["volume_mm3"], rel=1e-6)
+    assert report["mesh_volume_mm3"] == pytest.approx(m.volume_mm3, rel=1e-6)
     assert report["raw_mesh_volume_mm3"] == pytest.approx(raw.volume, rel=1e-9)
     # the dense field meshes to the same raw surface (its vertices in another order)
     dense = ol.mesh_from_field(ol.hull_field(sils, cal.cameras(s), grid), grid)
     assert len(dense.faces) == len(raw.faces) and dense.volume == pytest.approx(raw.volume, rel=1e-8)
-    assert m["watertight"] and report["watertight"]
+    assert m.watertight and report["watertight"]
     # within the sample's 2 mm accuracy (measured -0.61 %): the snippet is the real pipeline
-    assert abs(m["volume_mm3"] / s.reference["volume_mm3"] - 1) < 0.01
+    assert abs(m.volume_mm3 / s.reference["volume_mm3"] - 1) < 0.01
     # the calibration went to the output folder, and reads back as the same cameras
     back = ol.Calibration.load(out / "calibration.json")
     for a, b in zip(back.cameras(s), cal.cameras(s)):

@@ -21,11 +21,11 @@ def main(session: Path = SAMPLE, voxel_size: float = 2.0) -> None:
     mesh, steps = ol.finish_surface(raw, voxel_size=voxel_size)  # repaired and remeshed for FEA
     print(f"smallest angle {steps['raw']['min_angle_deg']:.3f} deg -> {steps['final']['min_angle_deg']:.1f} deg")
     m = ol.measure(mesh)
-    print(f"grid {grid.shape} at {voxel_size:g} mm; mesh {m['n_faces']} faces, watertight {m['watertight']}")
-    print(f"volume {m['volume_mm3']:.0f} mm3, area {m['area_mm2']:.0f} mm2")
+    print(f"grid {grid.shape} at {voxel_size:g} mm; mesh {m.n_faces} faces, watertight {m.watertight}")
+    print(f"volume {m.volume_mm3:.0f} mm3, area {m.area_mm2:.0f} mm2")
     ref = s.reference.get("volume_mm3")
     if ref:
-        print(f"volume error {100 * (m['volume_mm3'] / ref - 1):+.2f} % against the reference {ref:.0f} mm3")
+        print(f"volume error {100 * (m.volume_mm3 / ref - 1):+.2f} % against the reference {ref:.0f} mm3")
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ Public names are re-exported from private modules by topic:
 
 from ._aaa import AAAMeasures, measure_aaa
 from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
-from ._mesh import MC_METHODS, Mesh, color_vertices, measure, mesh_from_field, mesh_from_volume
+from ._mesh import MC_METHODS, Mesh, MeshMeasures, color_vertices, measure, mesh_from_field, mesh_from_volume
 from ._picture import aaa_picture, mesh_snapshot
 from ._quality import boundary_loops, mesh_quality
 from ._repair import finish_surface, remesh_mesh, repair_mesh, smooth_mesh
@@ -29,6 +29,7 @@ __all__ = [
     "mesh_from_volume",
     "mesh_from_field",
     "measure",
+    "MeshMeasures",
     "color_vertices",
     "MC_METHODS",
     "write_ply",

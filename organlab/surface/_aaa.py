@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from ..bandfield import BandField
 from ..errors import OrganlabError
@@ -93,9 +94,14 @@ def _largest_component(mask):
     return lab == np.argmax(sizes)
 
 
-def _end_point(inside, s, top, slab):
-    """Index of the inside voxel nearest the centroid of the largest component of the end slab."""
-    sel = inside & ((s >= s[inside].max() - slab) if top else (s <= s[inside].min() + slab))
+def _end_point(shape, idx, s, top, slab):
+    """Index of the inside voxel nearest the centroid of the largest component of the end slab.
+
+    ``idx`` (N, 3) int are the inside voxels (C order), ``s`` (N,) their coordinate along the main axis.
+    """
+    near = (s >= s.max() - slab) if top else (s <= s.min() + slab)
+    sel = np.zeros(shape, dtype=bool)  # the slab only: no whole-box coordinate arrays
+    sel[tuple(idx[near].T)] = True
     sel = _largest_component(sel)
     idx = np.argwhere(sel)
     c = idx.mean(axis=0)
@@ -112,14 +118,16 @@ def _centreline(inside, vs, smooth_mm, step_mm):
     dist = ndimage.distance_transform_edt(np.pad(sub, 1), sampling=vs)[1:-1, 1:-1, 1:-1]
     cost = np.where(sub, 1.0 / np.maximum(dist, 1e-3) ** 2, np.inf)  # outside: never entered (nor explored)
     # main axis: the principal direction of the lumen, oriented so its largest component is positive
-    idx = np.argwhere(sub).astype(np.float64)
+    ijk = np.argwhere(sub)
+    idx = ijk.astype(np.float64)
     _, v = np.linalg.eigh(np.cov((idx - idx.mean(axis=0)).T))
     axis = v[:, -1] * np.sign(v[np.argmax(np.abs(v[:, -1])), -1])
-    grid_idx = np.indices(sub.shape).reshape(3, -1).T @ axis
-    s = grid_idx.reshape(sub.shape)
+    s = idx @ axis  # the inside voxels' coordinate along the axis (voxels)
+    del idx
     slab = 3.0
-    a = _end_point(sub, s, True, slab)
-    b = _end_point(sub, s, False, slab)
+    a = _end_point(sub.shape, ijk, s, True, slab)
+    b = _end_point(sub.shape, ijk, s, False, slab)
+    del ijk, s
     path, _ = route_through_array(cost, a, b, fully_connected=True, geometric=True)
     p = (np.asarray(path, dtype=np.float64) + lo) * vs
     # smooth (the path is a voxel staircase) and resample by arc length
@@ -186,17 +194,45 @@ class _Plane:
         return world, feret, 2.0 * np.sqrt(area * self.px * self.px / np.pi)
 
 
-def _sample_many(sample, point_sets):
-    """``sample`` of several point arrays (..., 3) in one call (one pass of the sampler's threads)."""
-    if not point_sets:
+@njit(cache=True, nogil=True)
+def _plane_indices(C, E1, E2, G, goff, I, J, origin, vs, out):
+    """Fractional voxel indices of pixels ``g[i] x g[j]`` of planes (``_Plane.points``, then as ``FieldSampler``).
+
+    Plane ``p`` has centre ``C[p]``, axes ``E1[p]``, ``E2[p]``, pixel coordinates ``G[goff[p]:]``, and its
+    pixels ``range(*I[p]) x range(*J[p])``; they fill ``out`` (N, 3) one plane after the other in C
+    order.  The same operations in the same order as the numpy code: the same values.
+    """
+    k = 0
+    for p in range(C.shape[0]):
+        for i in range(I[p, 0], I[p, 1], I[p, 2]):
+            u = G[goff[p] + i]
+            for j in range(J[p, 0], J[p, 1], J[p, 2]):
+                w = G[goff[p] + j]
+                for d in range(3):
+                    out[k, d] = (C[p, d] + u * E1[p, d] + w * E2[p, d] - origin[d]) / vs
+                k += 1
+
+
+def _sample_planes(sample, planes, windows):
+    """The field on each plane's window ``(i0, i1, j0, j1, step)`` of pixels, in one sampling call.
+
+    Returns a list of ``(len(range(i0, i1, step)), len(range(j0, j1, step)))`` float64 images.
+    """
+    if not planes:
         return []
-    flat = np.concatenate([p.reshape(-1, 3) for p in point_sets])
-    vals = sample(flat)
+    I = np.array([(w[0], w[1], w[4]) for w in windows], dtype=np.int64).reshape(-1, 3)
+    J = np.array([(w[2], w[3], w[4]) for w in windows], dtype=np.int64).reshape(-1, 3)
+    shapes = [(len(range(*i)), len(range(*j))) for i, j in zip(I, J)]
+    goff = np.cumsum([0] + [len(p.g) for p in planes[:-1]]).astype(np.int64)
+    ijk = np.empty((sum(a * b for a, b in shapes), 3))
+    _plane_indices(np.array([p.c for p in planes], dtype=np.float64), np.array([p.e1 for p in planes]),
+                   np.array([p.e2 for p in planes]), np.concatenate([p.g for p in planes]), goff, I, J,
+                   np.asarray(sample.origin, dtype=np.float64), float(sample.voxel_size), ijk)
+    vals = sample.at_indices(ijk)
     out, k = [], 0
-    for p in point_sets:
-        n = int(np.prod(p.shape[:-1]))
-        out.append(vals[k : k + n].reshape(p.shape[:-1]))
-        k += n
+    for a, b in shapes:
+        out.append(vals[k : k + a * b].reshape(a, b))
+        k += a * b
     return out
 
 
@@ -208,10 +244,8 @@ def _sections(sample, level, planes, coarse=4):
     pixels, so the same contour as on the whole plane, which is sampled when the contour reaches
     the margin or the coarse sampling found none).  All planes share each sampling call.
     """
-    full = [np.arange(len(p.g)) for p in planes]
     centres = [np.array([[(len(p.g) - 1) / 2] * 2]) for p in planes]
-    ci = [np.arange(0, len(p.g), coarse) for p in planes]
-    rough = _sample_many(sample, [p.points(i, i) for p, i in zip(planes, ci)])
+    rough = _sample_planes(sample, planes, [(0, len(p.g), 0, len(p.g), coarse) for p in planes])
     rough = [_closed_around(img, level, c / coarse) for img, c in zip(rough, centres)]
     boxes = {}
     for k, (p, r) in enumerate(zip(planes, rough)):
@@ -220,8 +254,8 @@ def _sections(sample, level, planes, coarse=4):
             lo = np.maximum(np.floor(r[0].min(axis=0) * coarse).astype(int) - 2 * coarse, 0)
             hi = np.minimum(np.ceil(r[0].max(axis=0) * coarse).astype(int) + 2 * coarse, n - 1)
             boxes[k] = (lo, hi)
-    fine = _sample_many(sample, [planes[k].points(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-                                 for k, (lo, hi) in boxes.items()])
+    fine = _sample_planes(sample, [planes[k] for k in boxes],
+                          [(lo[0], hi[0] + 1, lo[1], hi[1] + 1, 1) for lo, hi in boxes.values()])
     best = [None] * len(planes)
     for (k, (lo, hi)), img in zip(boxes.items(), fine):
         sub = _closed_around(img, level, centres[k] - lo)
@@ -231,8 +265,11 @@ def _sections(sample, level, planes, coarse=4):
             inside = ((lo == 0) | (ct.min(axis=0) > 1)) & ((hi == n - 1) | (ct.max(axis=0) < hi - lo - 1))
             if inside.all():
                 best[k] = (ct + lo, area)
-    for k in [k for k in range(len(planes)) if best[k] is None]:
-        best[k] = _closed_around(sample(planes[k].points(full[k], full[k])), level, centres[k])
+    rest = [k for k in range(len(planes)) if best[k] is None]
+    whole = _sample_planes(sample, [planes[k] for k in rest], [(0, len(planes[k].g), 0, len(planes[k].g), 1)
+                                                               for k in rest])
+    for k, img in zip(rest, whole):
+        best[k] = _closed_around(img, level, centres[k])
     return [p.result(b) for p, b in zip(planes, best)]
 
 

@@ -11,6 +11,7 @@ outward, and degenerate faces are not produced.  ``method='classic'`` and
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -114,7 +115,38 @@ def mesh_from_field(field: np.ndarray | BandField, grid: VoxelGrid) -> Mesh:
     return mesh_from_volume(field, grid, level=0.5)
 
 
-def measure(mesh: Mesh) -> dict:
+@dataclass(frozen=True)
+class MeshMeasures:
+    """What :func:`measure` measured of a mesh (world frame, mm).
+
+    Attributes
+    ----------
+    volume_mm3 : float
+        Enclosed volume, mm^3.
+    area_mm2 : float
+        Surface area, mm^2.
+    watertight : bool
+        Every edge used exactly twice, in opposite directions.
+    n_vertices, n_faces : int
+    bounds_mm : (2, 3) list of float
+        ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]``.
+    """
+
+    volume_mm3: float
+    area_mm2: float
+    watertight: bool
+    n_vertices: int
+    n_faces: int
+    bounds_mm: list
+
+    def to_dict(self) -> dict:
+        """The JSON-ready dict that ``report.json`` holds (the attributes by name)."""
+        return {"volume_mm3": self.volume_mm3, "area_mm2": self.area_mm2, "watertight": self.watertight,
+                "n_vertices": self.n_vertices, "n_faces": self.n_faces,
+                "bounds_mm": [list(self.bounds_mm[0]), list(self.bounds_mm[1])]}
+
+
+def measure(mesh: Mesh) -> MeshMeasures:
     """The measures of a mesh that ``report.json`` holds.
 
     Parameters
@@ -123,10 +155,11 @@ def measure(mesh: Mesh) -> dict:
 
     Returns
     -------
-    dict
+    MeshMeasures
         ``volume_mm3`` (enclosed volume, mm^3), ``area_mm2`` (mm^2),
         ``watertight`` (every edge used exactly twice, in opposite directions),
-        ``n_vertices``, ``n_faces``, ``bounds_mm`` (``[[xmin, ymin, zmin], [xmax, ymax, zmax]]``).
+        ``n_vertices``, ``n_faces``, ``bounds_mm`` (``[[xmin, ymin, zmin], [xmax, ymax, zmax]]``);
+        ``.to_dict()`` for JSON.
 
     Examples
     --------
@@ -136,20 +169,14 @@ def measure(mesh: Mesh) -> dict:
     >>> x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
     >>> ball = x**2 + y**2 + z**2 <= 20.0**2  # a sphere of radius 20 mm: 33 510 mm^3
     >>> m = ol.measure(ol.finish_surface(ol.mesh_from_field(ball, grid), voxel_size=2.0)[0])
-    >>> round(m["volume_mm3"]), round(m["area_mm2"]), m["watertight"]  # the sphere: 33 510 mm^3, 5 027 mm^2
+    >>> round(m.volume_mm3), round(m.area_mm2), m.watertight  # the sphere: 33 510 mm^3, 5 027 mm^2
     (33297, 5036, True)
     """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be an organlab.surface.Mesh, got {type(mesh).__name__}")
     lo, hi = mesh.bounds
-    return {
-        "volume_mm3": float(mesh.volume),
-        "area_mm2": float(mesh.area),
-        "watertight": bool(mesh.is_watertight),
-        "n_vertices": int(len(mesh.vertices)),
-        "n_faces": int(len(mesh.faces)),
-        "bounds_mm": [np.asarray(lo, float).tolist(), np.asarray(hi, float).tolist()],
-    }
+    return MeshMeasures(float(mesh.volume), float(mesh.area), bool(mesh.is_watertight), int(len(mesh.vertices)),
+                        int(len(mesh.faces)), [np.asarray(lo, float).tolist(), np.asarray(hi, float).tolist()])
 
 
 def color_vertices(mesh: Mesh, colors: np.ndarray, colored: np.ndarray, grid: VoxelGrid) -> Mesh:
