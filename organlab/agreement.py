@@ -75,7 +75,8 @@ class ViewAgreement:
         silhouette), ``tolerance_px``, ``outline_px``, ``disagreement_px``
         (silhouette pixels the carved surface leaves unexplained beyond the
         tolerance), ``disagreement_width_px`` (the same over ``outline_px``),
-        ``disagreement`` (the same as a fraction of the silhouette), ``ok``.
+        ``disagreement`` (the same as a fraction of the silhouette), ``ok``;
+        ``raw_iou`` (the IoU of ``hull_mesh``) when it was given.
     worst : list of int
         View indices, worst first (:func:`worst_views`).
     warnings : list of str
@@ -99,7 +100,7 @@ def _one_view(model, sil, tol, hull=None):
     inner = ndimage.distance_transform_edt(sil) > tol
     far_miss = int(np.count_nonzero((sil & ~(model if hull is None else hull)) & inner))
     outline_px = int(np.count_nonzero(sil & ~ndimage.binary_erosion(sil)))
-    return {
+    row = {
         "iou": _iou(model, sil),
         "silhouette_px": sil_px,
         "outline_px": outline_px,
@@ -111,6 +112,9 @@ def _one_view(model, sil, tol, hull=None):
         "disagreement": far_miss / sil_px if sil_px else 0.0,
         "disagreement_width_px": far_miss / outline_px if outline_px else 0.0,
     }
+    if hull is not None:  # the raw surface's IoU: what finishing changed in this view
+        row["raw_iou"] = _iou(hull, sil)
+    return row
 
 
 def view_agreement(mesh: Mesh, cameras: Sequence[Camera], silhouettes: Sequence[Silhouette | np.ndarray], *,

@@ -872,8 +872,8 @@ class Engine:
         mesh, steps = raw, None
         if settings.finish:
             footprint = pixel_footprint(cameras, grid)
-            mesh, steps = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=footprint)
-            steps["pixel_footprint_mm"] = footprint
+            fin = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=footprint)
+            mesh, steps = fin.mesh, {**fin.to_dict(), "pixel_footprint_mm": footprint}
             clock.check()
         aaa = error = None
         if settings.measure or (settings.measure is None and self.is_aaa):
@@ -910,6 +910,12 @@ class Engine:
             report["poses"] = out["poses"].to_dict()
         for row, a in zip(report["views"], agr.views):
             row["agreement"] = a
+        dev = report.get("surface", {}).get("deviation")
+        if dev is not None and agr.views and "raw_iou" in agr.views[0]:  # what finishing changed in the views
+            change = [v["iou"] - v["raw_iou"] for v in agr.views]
+            worst = int(np.argmax(np.abs(change)))
+            report["surface"] = {**report["surface"], "deviation": {
+                **dev, "worst_view_iou_change": round(float(change[worst]), 5), "worst_view": names[worst]}}
         report["agreement"] = {"limit": agr.limit, **figures.to_dict()}
         warnings = list(agr.warnings)
         suggested = self._angle_suggestions(grid, sils, cal, agr, names)
