@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__, surface
-from .checks import model_warnings
+from .checks import model_warnings, roi_faces_touched
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
@@ -918,6 +918,11 @@ class Engine:
                 **dev, "worst_view_iou_change": round(float(change[worst]), 5), "worst_view": names[worst]}}
         report["agreement"] = {"limit": agr.limit, **figures.to_dict()}
         warnings = list(agr.warnings)
+        lo, hi = self.roi(settings)
+        disagreeing = []
+        if warnings and roi_faces_touched(occupancy, lo, grid.voxel_size):  # the roi's cut: one warning (checks)
+            disagreeing = [f"{names[i]} {agr.views[i]['disagreement_px']} px" for i in agr.worst if not agr.views[i]["ok"]]
+            warnings = []
         suggested = self._angle_suggestions(grid, sils, cal, agr, names)
         if suggested:
             report["agreement"]["suggested_angles"] = suggested
@@ -934,9 +939,9 @@ class Engine:
         if cal.turntable is not None:
             report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
         report["warnings"].extend(cal.warnings())
-        lo, hi = self.roi(settings)  # a model too big: too few views, a narrow span, the roi's faces touched
+        # a model too big: too few views, a narrow span, the roi's faces touched
         report["warnings"][:0] = model_warnings(cameras, occupancy, lo, hi, voxel_size=grid.voxel_size,
-                                                tolerance=int(settings.tolerance))
+                                                tolerance=int(settings.tolerance), disagreeing=disagreeing)
         return ChecksStage(agr, figures, report)
 
     def _angle_suggestions(self, grid, sils, cal, agr, names):
