@@ -74,6 +74,8 @@ def roi_faces_touched(occupancy, roi_min, voxel_size):
 
     Examples
     --------
+    >>> import numpy as np
+    >>> from organlab.checks import roi_faces_touched
     >>> occ = np.zeros((4, 4, 4), bool); occ[1:, 1:3, 0:2] = True
     >>> roi_faces_touched(occ, [0.0, 0.0, 0.0], 1.0), roi_faces_touched(occ, [0.0, 0.0, 10.0], 1.0)
     (['x max'], ['x max', 'z min'])

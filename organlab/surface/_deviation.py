@@ -151,6 +151,7 @@ def closest_points(points: np.ndarray, mesh: Mesh) -> tuple[np.ndarray, np.ndarr
     --------
     >>> import numpy as np
     >>> from organlab.mesh import Mesh
+    >>> from organlab.surface import closest_points
     >>> tri = Mesh(np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]]), np.array([[0, 1, 2]]))
     >>> q, d = closest_points(np.array([[0.5, 0.5, 3.0], [-1.0, -1.0, 0.0]]), tri)
     >>> q.round(3).tolist(), d.round(3).tolist()
