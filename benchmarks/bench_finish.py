@@ -13,9 +13,9 @@ silhouettes, raw and finished (the worst change).
 
 Measured (this session, a loaded 2-core machine, CPU best of 3; main's implementation run alternately
 in the same conditions): sample 1 mm 0.90-1.08 s against main's 1.47-1.59 s (0.68x), 19 378 faces,
-22.3 degrees, deviation mean 0.03 / max 0.7 voxel, volume +0.04 %; 0.5 mm 5.1-6.1 s against
-8.7-8.9 s (0.62x), 20.8 degrees.  Dino 1 mm: mean IoU 0.948 raw, 0.938 finished, worst view -0.037;
-deviation max 10 voxels (thin parts of the feet shaved: issue 21's bound not met).
+22.3 degrees, deviation mean 0.03 / max 0.6-0.7 voxel, worst view IoU -0.0029, volume +0.04 %; 0.5 mm 5.1-6.1 s against
+8.7-8.9 s (0.62x), 20.8 degrees; 0.25 mm 30.5 s, peak 978 MB (the raw mesh loaded: 141 MB), 89 948 faces, 23.1 degrees, deviation mean 0.05 / max 2.7 voxels.  Dino 1 mm (3.1 s): mean IoU 0.948 raw, 0.937 finished, worst view -0.036, 26.1 degrees;
+deviation mean 0.3, max 11 voxels (thin parts of the feet shaved: issue 21's bound not met).
 """
 
 from __future__ import annotations
