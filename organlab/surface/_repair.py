@@ -260,7 +260,7 @@ def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: f
     return out, _step("smooth", mesh, out, iterations=int(iterations))
 
 
-def remesh_mesh(mesh: Mesh, target_mm: float, *, iterations: int = 4, feature_deg: float = 60.0, min_angle: float = 20.0,
+def remesh_mesh(mesh: Mesh, target_mm: float, *, iterations: int = 6, feature_deg: float = 60.0, min_angle: float = 20.0,
                 max_passes: int = 3) -> tuple[Mesh, dict]:
     """Isotropic explicit remeshing to edges of about ``target_mm``.
 
