@@ -14,7 +14,8 @@ silhouettes, raw and finished (the worst change).
 Measured (this session, a loaded 2-core machine, CPU best of 3; main's implementation run alternately
 in the same conditions), 6 remeshing iterations: sample 1 mm 1.19-1.26 s against main's 1.68-1.83 s
 (0.70x), 19 160 faces, 23.4 degrees, deviation mean 0.03 / max 0.6-0.7 voxel, worst view IoU -0.003,
-volume +0.04 %.  With 4 iterations (not kept: 18.7 degrees on the crevice-and-tunnel ball of
+volume +0.04 %; 0.25 mm 38.3 s CPU against main's 39.9 s, peak 1039 MB against 1031 MB (the raw mesh loaded: 141 MB), 89 044 faces, 20.2 degrees, deviation mean 0.05 / max 2.7 voxels (at 0.25 mm the
+fold and sliver cut-and-fill, not the remeshing, is most of the time).  With 4 iterations (not kept: 18.7 degrees on the crevice-and-tunnel ball of
 tests/test_surface_tools.py): 1 mm 0.68x, 0.5 mm 5.1-6.1 s against 8.7-8.9 s (0.62x), 0.25 mm 30.5 s
 CPU, peak 978 MB (the raw mesh loaded: 141 MB), 89 948 faces, 23.1 degrees, deviation mean 0.05 /
 max 2.7 voxels.  Dino 1 mm (4 iterations, 3.1 s): mean IoU 0.948 raw, 0.937 finished, worst view
