@@ -9,7 +9,7 @@ The whole pipeline, one public function per stage::
     grid = ol.VoxelGrid.from_session(s, voxel_size=1.0)
     field = ol.hull_field(sils, cal.cameras(s), grid, sparse=True)
     mesh = ol.mesh_from_field(field, grid)
-    mesh, steps = ol.finish_surface(mesh, voxel_size=1.0)   # repaired, remeshed
+    mesh = ol.finish_surface(mesh, voxel_size=1.0).mesh     # repaired, remeshed
     ol.measure(mesh)                             # MeshMeasures: volume, area, watertight
 
 Stages, one module (or package) each: :mod:`organlab.session` (session
@@ -52,6 +52,7 @@ _LAZY = {
     "mesh_from_volume": "surface",
     "measure": "surface",
     "finish_surface": "surface",
+    "FinishedSurface": "surface",
     "Reconstruction": "pipeline",
     "reconstruct": "pipeline",
     "write_outputs": "pipeline",

@@ -75,7 +75,8 @@ class ViewAgreement:
         silhouette), ``tolerance_px``, ``outline_px``, ``disagreement_px``
         (silhouette pixels the carved surface leaves unexplained beyond the
         tolerance), ``disagreement_width_px`` (the same over ``outline_px``),
-        ``disagreement`` (the same as a fraction of the silhouette), ``ok``.
+        ``disagreement`` (the same as a fraction of the silhouette), ``ok``;
+        ``raw_iou`` (the IoU of ``hull_mesh``) when it was given.
     worst : list of int
         View indices, worst first (:func:`worst_views`).
     warnings : list of str
@@ -104,7 +105,7 @@ def _one_view(model, sil, tol, hull=None):
     inner = ndimage.distance_transform_edt(s) > tol
     far_miss = int(np.count_nonzero((s & ~h) & inner))
     outline_px = int(np.count_nonzero(s & ~ndimage.binary_erosion(s)))
-    return {
+    row = {
         "iou": _iou(model, sil),
         "silhouette_px": sil_px,
         "outline_px": outline_px,
@@ -116,6 +117,9 @@ def _one_view(model, sil, tol, hull=None):
         "disagreement": far_miss / sil_px if sil_px else 0.0,
         "disagreement_width_px": far_miss / outline_px if outline_px else 0.0,
     }
+    if hull is not None:  # the raw surface's IoU: what finishing changed in this view
+        row["raw_iou"] = _iou(hull, sil)
+    return row
 
 
 def _box(mask):

@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import SessionError
 
-__all__ = ["MIN_SPAN_DEG", "check_tolerance", "model_warnings", "view_span_deg"]
+__all__ = ["MIN_SPAN_DEG", "check_tolerance", "model_warnings", "roi_faces_touched", "view_span_deg"]
 
 #: Views must look from at least this much of the table.  A silhouette seen from angle a bounds the
 #: model as the one from a + 180 (mirrored) does, so half a turn sights every direction once; below
@@ -69,6 +69,20 @@ def view_span_deg(cameras):
     return float(360.0 - gaps.max())
 
 
+def roi_faces_touched(occupancy, roi_min, voxel_size):
+    """The roi faces (``"x min"`` ... ``"z max"``) the model reaches; the floor at the table top (z = 0) is expected.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from organlab.checks import roi_faces_touched
+    >>> occ = np.zeros((4, 4, 4), bool); occ[1:, 1:3, 0:2] = True
+    >>> roi_faces_touched(occ, [0.0, 0.0, 0.0], 1.0), roi_faces_touched(occ, [0.0, 0.0, 10.0], 1.0)
+    (['x max'], ['x max', 'z min'])
+    """
+    return _touched_faces(occupancy, np.asarray(roi_min, float), voxel_size)
+
+
 def _touched_faces(occupancy, roi_min, voxel_size):
     occ = np.asarray(occupancy, dtype=bool)
     touched = [occ[0].any(), occ[-1].any(), occ[:, 0].any(), occ[:, -1].any(), occ[:, :, 0].any(), occ[:, :, -1].any()]
@@ -78,7 +92,7 @@ def _touched_faces(occupancy, roi_min, voxel_size):
     return [f for f, t in zip(_FACES, touched) if t]
 
 
-def model_warnings(cameras, occupancy, roi_min, roi_max, *, voxel_size, tolerance=0):
+def model_warnings(cameras, occupancy, roi_min, roi_max, *, voxel_size, tolerance=0, disagreeing=()):
     """Warnings for a model that is too big, each with what its volume then means.
 
     Parameters
@@ -91,6 +105,10 @@ def model_warnings(cameras, occupancy, roi_min, roi_max, *, voxel_size, toleranc
     voxel_size : float, mm
     tolerance : int
         Views allowed to disagree (:func:`check_tolerance`).
+    disagreeing : sequence of str
+        The views the agreement check flagged (e.g. ``"views/180.jpg 68 px"``).  A model cut by
+        the roi leaves silhouette unexplained where it is cut: the roi's warning names them, so that
+        the cut is one warning, not one about the roi and one blaming the poses.
 
     Returns
     -------
@@ -128,9 +146,13 @@ def model_warnings(cameras, occupancy, roi_min, roi_max, *, voxel_size, toleranc
                 lo[axis] -= ext[axis] / 2
             else:
                 hi[axis] += ext[axis] / 2
+        views = list(disagreeing)
+        flagged = (f"; the {len(views)} view{'s that disagree' if len(views) > 1 else ' that disagrees'} with the model "
+                   f"({', '.join(views[:5])}{' and more' if len(views) > 5 else ''}) likely do so because of the cut"
+                   if views else "")
         out.append(f"the model touches the roi's {', '.join(faces)} face{'s' if len(faces) > 1 else ''}: it is cut "
                    "off there (or swept to them by too few views), so its volume and sizes are not the specimen's; "
-                   f"enlarge the roi, e.g. min {_mm(lo)}, max {_mm(hi)}")
+                   f"enlarge the roi, e.g. min {_mm(lo)}, max {_mm(hi)}{flagged}")
     return out
 
 

@@ -418,11 +418,12 @@ def _reconstruct_locked(a):
         for name, why in rec.report.get("calibration", {}).get(f"{what}_rejected", {}).items():
             print(f"  {what} image {printable(name)} not used: {printable(why)}")
     warnings = rec.report.get("warnings", [])
+    if warnings and a.strict:  # one line: the warnings are the error (report.json lists them one by one)
+        print(f"organlab: error: --strict and {len(warnings)} warning{'s' if len(warnings) > 1 else ''}: "
+              + " | ".join(printable(w) for w in warnings), file=sys.stderr)
+        return 2
     for w in warnings:
         print(f"organlab: warning: {printable(w)}", file=sys.stderr)
-    if warnings and a.strict:
-        print(f"organlab: error: {len(warnings)} warning(s) and --strict", file=sys.stderr)
-        return 2
     return 0
 
 

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__, surface
-from .checks import model_warnings
+from .checks import model_warnings, roi_faces_touched
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
@@ -919,8 +919,8 @@ class Engine:
         mesh, steps = raw, None
         if settings.finish:
             footprint = pixel_footprint(cameras, grid)
-            mesh, steps = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=footprint)
-            steps["pixel_footprint_mm"] = footprint
+            fin = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=footprint)
+            mesh, steps = fin.mesh, {**fin.to_dict(), "pixel_footprint_mm": footprint}
             clock.check()
         aaa = error = None
         if settings.measure or (settings.measure is None and self.is_aaa):
@@ -957,8 +957,19 @@ class Engine:
             report["poses"] = out["poses"].to_dict()
         for row, a in zip(report["views"], agr.views):
             row["agreement"] = a
+        dev = report.get("surface", {}).get("deviation")
+        if dev is not None and agr.views and "raw_iou" in agr.views[0]:  # what finishing changed in the views
+            change = [v["iou"] - v["raw_iou"] for v in agr.views]
+            worst = int(np.argmax(np.abs(change)))
+            report["surface"] = {**report["surface"], "deviation": {
+                **dev, "worst_view_iou_change": round(float(change[worst]), 5), "worst_view": names[worst]}}
         report["agreement"] = {"limit": agr.limit, **figures.to_dict()}
         warnings = list(agr.warnings)
+        lo, hi = self.roi(settings)
+        disagreeing = []
+        if warnings and roi_faces_touched(occupancy, lo, grid.voxel_size):  # the roi's cut: one warning (checks)
+            disagreeing = [f"{names[i]} {agr.views[i]['disagreement_px']} px" for i in agr.worst if not agr.views[i]["ok"]]
+            warnings = []
         suggested = self._angle_suggestions(grid, sils, cal, agr, names)
         if suggested:
             report["agreement"]["suggested_angles"] = suggested
@@ -975,9 +986,9 @@ class Engine:
         if cal.turntable is not None:
             report["calibration"]["turntable_flagged"] = list(cal.turntable.flagged)
         report["warnings"].extend(cal.warnings())
-        lo, hi = self.roi(settings)  # a model too big: too few views, a narrow span, the roi's faces touched
+        # a model too big: too few views, a narrow span, the roi's faces touched
         report["warnings"][:0] = model_warnings(cameras, occupancy, lo, hi, voxel_size=grid.voxel_size,
-                                                tolerance=int(settings.tolerance))
+                                                tolerance=int(settings.tolerance), disagreeing=disagreeing)
         return ChecksStage(agr, figures, report)
 
     def _angle_suggestions(self, grid, sils, cal, agr, names):

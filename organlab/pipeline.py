@@ -11,7 +11,7 @@ and timings::
     grid = VoxelGrid.from_session(session, voxel_size=1.0)
     field = hull_field(sils, cameras, grid, sparse=True)  # organlab.carving
     mesh = mesh_from_field(field, grid)        # organlab.surface
-    mesh, steps = finish_surface(mesh, voxel_size=1.0)
+    mesh = finish_surface(mesh, voxel_size=1.0).mesh
     measure(mesh)
 
 :func:`write_outputs` writes the files that ``docs/session-format.md``

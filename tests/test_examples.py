@@ -80,6 +80,8 @@ STAGE_FUNCTIONS = [
     "organlab.coloring.color_voxels",
     "organlab.surface.mesh_from_field",
     "organlab.surface.finish_surface",
+    "organlab.surface.closest_points",
+    "organlab.checks.roi_faces_touched",
     "organlab.surface.measure",
     "organlab.surface.measure_aaa",
     "organlab.agreement.view_agreement",

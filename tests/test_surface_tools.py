@@ -166,7 +166,7 @@ def test_finish_surface_clears_folds_at_half_mm_voxels():
     q = report["final"]
     assert out.is_watertight and report["watertight"]
     assert q["nonmanifold_edges"] == q["nonmanifold_vertices"] == 0
-    assert q["min_angle_deg"] >= 20.0  # measured 34.4
+    assert q["min_angle_deg"] >= 20.0  # measured 30.8 (34.4 with 10 remeshing iterations; 18.7 with 4)
     # one closed piece; the handle under the bridge, narrower than two remeshing edges, is filled (genus 0)
     assert len(out.vertices) - len(out.faces) // 2 == 2
     assert abs(report["volume_change_pct"]) < 0.3  # measured 0.15 %, mostly Taubin smoothing of the staircase

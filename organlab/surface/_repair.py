@@ -13,11 +13,13 @@ are cut out and filled before remeshing, see :mod:`._folds`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from ..errors import OrganlabError
+from ._deviation import surface_deviation
 from ._folds import fold_edges
 from ._mesh import Mesh
 from ._quality import _face_figures, _moved, boundary_loops, mesh_quality, triangle_angles
@@ -258,7 +260,7 @@ def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: f
     return out, _step("smooth", mesh, out, iterations=int(iterations))
 
 
-def remesh_mesh(mesh: Mesh, target_mm: float, *, iterations: int = 10, feature_deg: float = 60.0, min_angle: float = 20.0,
+def remesh_mesh(mesh: Mesh, target_mm: float, *, iterations: int = 6, feature_deg: float = 60.0, min_angle: float = 20.0,
                 max_passes: int = 3) -> tuple[Mesh, dict]:
     """Isotropic explicit remeshing to edges of about ``target_mm``.
 
@@ -403,7 +405,7 @@ def finish_surface(
     min_angle: float = 20.0,
     keep_volume: bool = True,
     min_edge_mm: float = 0.75,
-) -> tuple[Mesh, dict]:
+) -> FinishedSurface:
     """A repaired, watertight, manifold surface fit for finite-element meshing.
 
     Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and
@@ -438,11 +440,12 @@ def finish_surface(
 
     Returns
     -------
-    Mesh
-        The finished surface, oriented outward.
-    dict
-        ``steps`` (what each step changed), ``raw`` and ``final`` quality
-        (:func:`mesh_quality`), ``watertight``, ``volume_change_pct``.
+    FinishedSurface
+        ``mesh`` (the finished surface, oriented outward), ``steps`` (what each
+        step changed), ``raw`` and ``final`` quality (:func:`mesh_quality`),
+        ``watertight``, ``volume_change_pct`` and ``deviation`` (how far the
+        finished surface lies from the raw one, in voxels:
+        :func:`surface_deviation`); ``to_dict()`` is the report's ``surface``.
 
     Examples
     --------
@@ -451,9 +454,11 @@ def finish_surface(
     >>> grid = ol.VoxelGrid(origin=(-24.0, -24.0, -24.0), voxel_size=2.0, shape=(25, 25, 25))
     >>> x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
     >>> ball = x**2 + y**2 + z**2 <= 20.0**2  # a sphere of radius 20 mm: 33 510 mm^3
-    >>> mesh, steps = ol.finish_surface(ol.mesh_from_field(ball, grid), voxel_size=2.0)
-    >>> mesh.is_watertight, steps["watertight"], round(mesh.volume)  # the raw mesh's volume is kept
+    >>> fin = ol.finish_surface(ol.mesh_from_field(ball, grid), voxel_size=2.0)
+    >>> fin.mesh.is_watertight, fin.watertight, round(fin.mesh.volume)  # the raw mesh's volume is kept
     (True, True, 33297)
+    >>> fin.deviation["mean_voxels"] < 0.25 and fin.deviation["max_voxels"] < 1.0  # on the raw surface
+    True
     """
     if not (isinstance(voxel_size, (int, float)) and voxel_size > 0):
         raise ValueError(f"voxel_size must be a positive number of mm, got {voxel_size!r}")
@@ -463,6 +468,7 @@ def finish_surface(
     if repair:
         out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
         steps.append(rec)
+    repaired = out  # the deviation is measured against the raw surface less the specks repair drops
     if smooth:
         out, rec = smooth_mesh(out)
         steps.append(rec)
@@ -474,19 +480,56 @@ def finish_surface(
             out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
             steps.append(rec)
     raw, final = mesh_quality(mesh), mesh_quality(out)
-    report = {
-        "steps": steps,
-        "raw": raw,
-        "final": final,
-        "watertight": bool(out.is_watertight and final["nonmanifold_vertices"] == 0),
-        "volume_change_pct": 100.0 * (final["volume_mm3"] - raw["volume_mm3"]) / raw["volume_mm3"],
-    }
+    deviation = surface_deviation(out, repaired, voxel_size=float(voxel_size))
     if mesh.vertex_colors is not None:
         from scipy.spatial import cKDTree
 
         _, idx = cKDTree(mesh.vertices).query(out.vertices)
         out = Mesh(out.vertices, out.faces, np.asarray(mesh.vertex_colors)[idx])
-    return out, report
+    return FinishedSurface(
+        mesh=out, steps=steps, raw=raw, final=final,
+        watertight=bool(out.is_watertight and final["nonmanifold_vertices"] == 0),
+        volume_change_pct=100.0 * (final["volume_mm3"] - raw["volume_mm3"]) / raw["volume_mm3"],
+        deviation=deviation)
+
+
+@dataclass(frozen=True)
+class FinishedSurface:
+    """What :func:`finish_surface` made, and its figures.
+
+    Attributes
+    ----------
+    mesh : Mesh
+        The finished surface, world frame, mm, oriented outward.
+    steps : list of dict
+        What each step changed (repair, smooth, folds, remesh, slivers).
+    raw, final : dict
+        :func:`mesh_quality` of the input and of ``mesh``.
+    watertight : bool
+        Closed, edge- and vertex-manifold.
+    volume_change_pct : float, %
+        ``mesh``'s volume against the input's.
+    deviation : dict
+        :func:`surface_deviation` of ``mesh`` from the input (less the specks repair drops), voxels.
+
+    Unpacking gives ``(mesh, to_dict())``, the ``(Mesh, dict)`` pair this function returned before.
+    """
+
+    mesh: Mesh
+    steps: list = field(default_factory=list)
+    raw: dict = field(default_factory=dict)
+    final: dict = field(default_factory=dict)
+    watertight: bool = False
+    volume_change_pct: float = 0.0
+    deviation: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """The report's ``surface`` entry (``report.json``)."""
+        return {"steps": list(self.steps), "raw": dict(self.raw), "final": dict(self.final), "watertight": self.watertight,
+                "volume_change_pct": self.volume_change_pct, "deviation": dict(self.deviation)}
+
+    def __iter__(self):
+        return iter((self.mesh, self.to_dict()))
 
 
 # ------------------------------------------------------- folds: cut and fill (see ._folds)

@@ -141,7 +141,8 @@ def mesh_result(result_dir: str | Path, *, repair: bool = True, smooth: bool = T
     out = Path(result_dir) / "surface"
     out.mkdir(parents=True, exist_ok=True)
     raw = mesh_from_volume(vol, grid, level=0.5)
-    mesh, report = finish_surface(raw, voxel_size=grid.voxel_size, repair=repair, smooth=smooth, remesh=remesh)
+    fin = finish_surface(raw, voxel_size=grid.voxel_size, repair=repair, smooth=smooth, remesh=remesh)
+    mesh, report = fin.mesh, fin.to_dict()
     paths = {}
     for name, writer in (("ply", write_ply), ("stl", write_stl), ("obj", write_obj), ("vtu", write_vtk)):
         paths[name] = out / f"mesh.{name}"
