@@ -66,7 +66,14 @@ RING_PX = (3, 15)
 #: Region rule: smallest region (px), margin in standard errors and in standard deviations.
 MIN_REGION = 6
 REGION_SE = 4.0
-REGION_SD = 0.5
+REGION_SD = 1.0
+#: Region rule: largest region, fraction of the silhouette (a notch or a patch, not a piece of the stand).
+REGION_FRACTION = 0.1
+#: Removal is skipped in a view where it would take more than this fraction of the silhouette (the prior is
+#: then what is wrong: other views that lost a part).
+REMOVE_FRACTION = 0.02
+#: Least background deviation of the region rule (grey levels or Delta E: quantised, noiseless backdrops have MAD 0).
+SD_FLOOR = 1.0
 #: Views needed for the joint step to mean anything ("auto").
 MIN_VIEWS = 8
 
@@ -134,7 +141,7 @@ def _stats(d, ring):
         return None
     med = float(np.median(v))
     sd = 1.4826 * float(np.median(np.abs(v - med)))
-    return float(np.mean(v)), sd, float(np.percentile(v, 99.5))
+    return float(np.mean(v)), max(sd, SD_FLOOR), float(np.percentile(v, 99.5))
 
 
 def _edge_grow(d, mask, allowed, hi_level, rounds):
@@ -155,21 +162,37 @@ def _edge_grow(d, mask, allowed, hi_level, rounds):
     return m
 
 
-def _regions(d, missing, stats):
-    """The connected parts of ``missing`` whose mean difference is not the background's."""
+def _regions(d, missing, stats, mask, ring):
+    """The connected parts of ``missing`` next to ``mask`` whose mean difference is not the background's
+    next to them (the background ring within ``RING_PX[1]`` px of the part; the whole ring's when too few)."""
     import cv2
 
-    mean_b, sd_b, _ = stats
     n, lab, st, _ = cv2.connectedComponentsWithStats(missing.astype(np.uint8), connectivity=8)
+    out = np.zeros(missing.shape, bool)
     if n <= 1:
-        return np.zeros(missing.shape, bool)
-    sums = np.bincount(lab.ravel(), weights=d.ravel().astype(np.float64), minlength=n)
-    area = st[:, cv2.CC_STAT_AREA].astype(np.float64)
-    mean = sums / np.maximum(area, 1)
-    need = mean_b + np.maximum(REGION_SE * sd_b / np.sqrt(np.maximum(area, 1)), REGION_SD * sd_b)
-    keep = (area >= MIN_REGION) & (mean > need) & (mean > mean_b + 0.5)
-    keep[0] = False
-    return keep[lab]
+        return out
+    area = st[:, cv2.CC_STAT_AREA]
+    touch = np.zeros(n, bool)
+    touch[np.unique(lab[_dilate(mask, 1) & missing])] = True
+    big = REGION_FRACTION * np.count_nonzero(mask)
+    for k in np.flatnonzero(touch & (area >= MIN_REGION) & (area <= big)):
+        if k == 0:
+            continue
+        x, y, w, h = st[k, :4]
+        r = 2 * RING_PX[1]
+        sl = (slice(max(y - r, 0), y + h + r), slice(max(x - r, 0), x + w + r))
+        part = lab[sl] == k
+        near = ring[sl] & _dilate(part, r)
+        v = d[sl][near]
+        if v.size >= 30:
+            med = float(np.median(v))
+            mean_b, sd_b = float(np.mean(v)), max(1.4826 * float(np.median(np.abs(v - med))), SD_FLOOR)
+        else:
+            mean_b, sd_b = stats[0], stats[1]
+        a = float(area[k])
+        if float(d[sl][part].mean()) > mean_b + max(REGION_SE * sd_b / np.sqrt(a), REGION_SD * sd_b):
+            out[sl] |= part
+    return out
 
 
 def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) -> tuple[np.ndarray, dict]:
@@ -200,7 +223,7 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) 
     if st is not None:
         grown = _edge_grow(d, out, prior, st[2], EDGE_ROUNDS)
         deep = _erode(prior, slack)
-        regions = _regions(d, deep & ~grown, st)
+        regions = _regions(d, deep & ~grown, st, grown, ring)
         if regions.any():
             grown2 = _edge_grow(d, grown | regions, prior, st[2], EDGE_ROUNDS)
             info["added_regions"] = int(np.count_nonzero(grown2 & ~grown))
@@ -210,8 +233,11 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) 
         out = grown2
     keep = _dilate(prior, slack)
     removed = out & ~keep
-    info["removed"] = int(np.count_nonzero(removed & mask))
-    out &= keep
+    if np.count_nonzero(removed) <= REMOVE_FRACTION * np.count_nonzero(out):
+        info["removed"] = int(np.count_nonzero(removed & mask))
+        out &= ~removed
+    else:
+        info["removal_skipped_px"] = int(np.count_nonzero(removed))
     return out, info
 
 
@@ -232,8 +258,7 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
     cur = [m.copy() for m in first]
     editable = [d is not None for d in differences]
     lo, hi = (np.asarray(v, float) for v in box)
-    pad = 0.2 * (hi - lo)
-    box2 = (lo - pad, hi + pad)
+    box2 = (lo, hi)
     rounds, voxel, last = 0, None, [None] * len(cur)
     for _ in range(int(iterations)):
         grid, hull = prior_hull(cur, cameras, box2)

@@ -331,7 +331,7 @@ class SilhouetteModel:
             One per view.
         box : ((3,), (3,)) float, mm
             Where the specimen lies (the session's roi); the prior is carved
-            in it, grown by 20 % on every side.
+            in it.
         iterations : int, optional
             At most this many rounds (default ``organlab.silhouette._joint.ITERATIONS``).
 
