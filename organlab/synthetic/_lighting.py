@@ -31,7 +31,7 @@ from ._specimens import Specimen, make_specimen
 
 LOOKS = ("rim", "dark_paint", "even_paint")
 #: Rim look: ambient and head-lamp shares of the specimen's shade.
-RIM_AMBIENT = 0.10
+RIM_AMBIENT = 0.25
 RIM_DIFFUSE = 1.0
 #: Paint: the dark patches' reflectance (of full scale), the even patches', and the dark plate's.
 DARK_ALBEDO = 0.15
