@@ -60,7 +60,7 @@ __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_ME
 
 METHODS = ("hull", "coloring", "space_carving")
 HULL_METHODS = ("subvoxel", "thesis")
-#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments itself.
+#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments by subtraction.
 JOINT_MODES = ("auto", "on", "off")
 
 
@@ -106,7 +106,8 @@ class Settings:
         (:meth:`organlab.silhouette.SilhouetteModel.joint`: adds what the
         other views require and the colour does not deny, drops what no
         view explains); 'auto': when the session has >= 8 views whose
-        silhouettes it finds itself.
+        silhouettes it finds by background subtraction (not for a session
+        keyed against a ``backdrop``: measured worse on the dino photos).
 
     Examples
     --------

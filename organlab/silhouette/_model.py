@@ -360,8 +360,10 @@ class SilhouetteModel:
         return out, summary
 
     def joint_applies(self) -> bool:
-        """Whether ``joint_silhouettes="auto"`` runs the joint step: at least MIN_VIEWS views, one found (not given)."""
-        return len(self) >= MIN_VIEWS and any(d is not None for d in self.differences)
+        """Whether ``joint_silhouettes="auto"`` runs the joint step: at least MIN_VIEWS views, found by background
+        subtraction (not keyed: on the dinoSparseRing photos keyed against their backdrop the step added dark
+        stand and shadow next to the specimen, like-with-like IoU 0.980 -> 0.969), one not given."""
+        return len(self) >= MIN_VIEWS and not self.keyed and any(d is not None for d in self.differences)
 
     def _coverage(self, i, mask):
         if not self.keyed:
