@@ -16,10 +16,10 @@ segmented again with the model of the views together as a prior:
    prior's projection (median, MAD, 99.5th percentile);
 3. *edge growth* (sub-pixel rule): a pixel next to the silhouette and
    inside the prior is added where it differs from the background beyond
-   the ring's 99.5th percentile and by at least half the contrast of the
-   silhouette's pixels around it (an edge pixel covered by a fraction ``a``
+   the ring's 99.5th percentile and by at least ``EDGE_FRACTION`` (0.6) of the contrast of
+   the silhouette's pixels around it (an edge pixel covered by a fraction ``a``
    of the specimen shows ``a`` times that contrast: the rule adds the pixels
-   the specimen covers by half or more, the ones a global threshold drops
+   the specimen covers by more than half, the ones a global threshold drops
    where the specimen's edge is shaded);
 4. *regions the others require*: a connected part of the prior's
    projection, eroded by its slack (the voxels' size and the bounding-box
@@ -34,8 +34,8 @@ segmented again with the model of the views together as a prior:
 
 Given masks are never changed (they are priors for the others).  A correct
 silhouette is not grown: beyond it the prior's projection is only its slack
-(rejected by region 4's erosion), and edge pixels the specimen covers by less
-than half fail rule 3.
+(rejected by region 4's erosion), and edge pixels the specimen covers by half
+or less fail rule 3.
 """
 
 from __future__ import annotations
@@ -61,6 +61,9 @@ ITERATIONS = 3
 #: Edge growth: rounds (px) per iteration, and the window (px) whose silhouette pixels give the contrast.
 EDGE_ROUNDS = 4
 CONTRAST_WINDOW = 5
+#: Edge rule: least difference, as a fraction of the contrast around (a half-covered pixel shows 0.5; the
+#: margin absorbs the specimen's shading and texture across the window).
+EDGE_FRACTION = 0.6
 #: The background ring outside the prior's projection (px).
 RING_PX = (3, 15)
 #: Region rule: smallest region (px), margin in standard errors and in standard deviations.
@@ -71,7 +74,7 @@ REGION_SD = 1.0
 REGION_FRACTION = 0.1
 #: Removal is skipped in a view where it would take more than this fraction of the silhouette (the prior is
 #: then what is wrong: other views that lost a part).
-REMOVE_FRACTION = 0.02
+REMOVE_FRACTION = 0.1
 #: Least background deviation of the region rule (grey levels or Delta E: quantised, noiseless backdrops have MAD 0).
 SD_FLOOR = 1.0
 #: Views needed for the joint step to mean anything ("auto").
@@ -155,7 +158,7 @@ def _edge_grow(d, mask, allowed, hi_level, rounds):
         if not cand.any():
             break
         contrast = cv2.dilate(np.where(m, d, 0).astype(np.float32), np.ones((CONTRAST_WINDOW,) * 2, np.uint8))
-        ok = cand & (d > hi_level) & (d >= 0.5 * contrast)
+        ok = cand & (d > hi_level) & (d >= EDGE_FRACTION * contrast)
         if not ok.any():
             break
         m |= ok
@@ -175,6 +178,7 @@ def _regions(d, missing, stats, mask, ring):
     touch = np.zeros(n, bool)
     touch[np.unique(lab[_dilate(mask, 1) & missing])] = True
     big = REGION_FRACTION * np.count_nonzero(mask)
+    edge = _dilate(mask, 1)
     for k in np.flatnonzero(touch & (area >= MIN_REGION) & (area <= big)):
         if k == 0:
             continue
@@ -189,8 +193,11 @@ def _regions(d, missing, stats, mask, ring):
             mean_b, sd_b = float(np.mean(v)), max(1.4826 * float(np.median(np.abs(v - med))), SD_FLOOR)
         else:
             mean_b, sd_b = stats[0], stats[1]
-        a = float(area[k])
-        if float(d[sl][part].mean()) > mean_b + max(REGION_SE * sd_b / np.sqrt(a), REGION_SD * sd_b):
+        core = part & ~edge[sl]  # the pixels next to the silhouette blend with it: judged by the edge rule
+        a = float(np.count_nonzero(core))
+        if a < MIN_REGION:
+            continue
+        if float(d[sl][core].mean()) > mean_b + max(REGION_SE * sd_b / np.sqrt(a), REGION_SD * sd_b):
             out[sl] |= part
     return out
 
