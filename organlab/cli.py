@@ -175,6 +175,10 @@ def _parser():
     r.add_argument("--refine-poses", choices=["auto", "on", "off"], default="auto",
                    help="correct the poses from the silhouettes (a bumped camera, a table that lost steps, a specimen that "
                         "slid), kept only when views left out of the fit agree better; auto: when views disagree (default)")
+    r.add_argument("--joint-silhouettes", choices=["auto", "on", "off"], default="auto",
+                   help="segment every view again with the hull of all the views as a prior: adds what the other views "
+                        "require and the colour does not deny (dark parts, shaded rims), drops what no view explains; "
+                        "auto: for sessions with background frames and >= 8 views (default)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
     r.add_argument("--allow-outside-paths", action="store_true",
                    help="accept image paths in session.json that lead out of the session folder (.., absolute, symlinks)")
@@ -443,6 +447,7 @@ def _run_reconstruct(a, session, max_memory):
         finish=not a.raw_surface,
         measure=True if a.measure else None,
         refine_poses=a.refine_poses,
+        joint_silhouettes=a.joint_silhouettes,
     )
 
 

@@ -60,6 +60,8 @@ __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_ME
 
 METHODS = ("hull", "coloring", "space_carving")
 HULL_METHODS = ("subvoxel", "thesis")
+#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments by subtraction.
+JOINT_MODES = ("auto", "on", "off")
 
 
 class Cancelled(Exception):
@@ -97,6 +99,15 @@ class Settings:
         AAA measures; None = when the session's specimen is an AAA.
     roi : ((3,), (3,)) tuple of float, mm, or None
         The box carved, world frame; None = the session's ``roi``.
+    refine_poses : {'auto', 'on', 'off'}
+        Correct the poses from the silhouettes (:func:`organlab.poses.refine_poses`).
+    joint_silhouettes : {'auto', 'on', 'off'}
+        Segment every view again with the hull of all the views as a prior
+        (:meth:`organlab.silhouette.SilhouetteModel.joint`: adds what the
+        other views require and the colour does not deny, drops what no
+        view explains); 'auto': when the session has >= 8 views whose
+        silhouettes it finds by background subtraction (not for a session
+        keyed against a ``backdrop``: measured worse on the dino photos).
 
     Examples
     --------
@@ -119,6 +130,7 @@ class Settings:
     measure: bool | None = None
     roi: tuple | None = None
     refine_poses: str = "auto"  # 'auto' | 'on' | 'off' (organlab.poses.refine_poses)
+    joint_silhouettes: str = "auto"  # 'auto' | 'on' | 'off' (SilhouetteModel.joint: every view's hull as a prior)
 
     def replace(self, **changes: Any) -> Settings:
         """A copy with some fields changed (validated)."""
@@ -170,6 +182,8 @@ class Settings:
             raise SettingsError("measure", f"must be True, False or None (when the session is an AAA), got {self.measure!r}")
         if self.refine_poses not in POSE_MODES:
             raise SettingsError("refine_poses", f"must be one of {POSE_MODES}, got {self.refine_poses!r}")
+        if self.joint_silhouettes not in JOINT_MODES:
+            raise SettingsError("joint_silhouettes", f"must be one of {JOINT_MODES}, got {self.joint_silhouettes!r}")
         if self.roi is not None:
             try:
                 lo, hi = (np.asarray(v, dtype=np.float64) for v in self.roi)
@@ -185,7 +199,7 @@ class Settings:
 #: re-runs that stage and every stage after it; the earlier ones are kept.
 DEPENDS: dict[str, tuple[str, ...]] = {
     "calibration": (),  # the Engine's calibration= / recalibrate= (fixed for an Engine)
-    "silhouettes": ("threshold",),
+    "silhouettes": ("threshold", "joint_silhouettes"),
     "poses": ("refine_poses",),  # the poses corrected from the silhouettes (organlab.poses), before carving
     "carving": ("voxel_size", "roi", "hull", "tolerance"),
     "coloring": ("method", "color_threshold"),
@@ -656,6 +670,7 @@ class Engine:
         self._cache: dict[str, tuple[tuple, Any]] = {}
         self.computed = {name: 0 for name in STAGES}
         self.timings: dict[str, float] = {}
+        self.joint_summary: dict | None = None  # the joint silhouette step's last run (None: it did not run)
 
     @classmethod
     def from_views(cls, images: Sequence[np.ndarray] | None, silhouettes: Sequence[Silhouette], cameras: Sequence, *,
@@ -857,6 +872,13 @@ class Engine:
         bar = clock.bar("silhouettes")
         sils = self.silhouette_model.silhouettes(threshold=settings.threshold, progress=bar)
         bar.close()
+        mode = settings.joint_silhouettes
+        if mode == "on" or (mode == "auto" and self.silhouette_model.joint_applies()):
+            clock.check()
+            sils, self.joint_summary = self.silhouette_model.joint(sils, out["calibration"].cameras,
+                                                                   self.roi(Settings()))
+        else:
+            self.joint_summary = None
         return sils
 
     def _run_poses(self, settings, clock, out, notify):
@@ -951,6 +973,11 @@ class Engine:
         report = _report(s, self.views, grid, occupancy, surf.mesh, cameras, cal, cal_stage.how, sils, timings,
                          settings)
         report.update(surf.to_dict())
+        j = self.joint_summary
+        report["joint_silhouettes"] = {"mode": settings.joint_silhouettes, "ran": j is not None,
+                                       **({k: v for k, v in j.items() if k != "views"} if j else {}),
+                                       **({"added_px": sum(v["added"] for v in j["views"]),
+                                           "removed_px": sum(v["removed"] for v in j["views"])} if j else {})}
         if colored is not None:
             report["coloring"] = colored.info
         if out.get("poses") is not None:
@@ -1200,6 +1227,13 @@ def _hashable(v):
     return v
 
 
+def _silhouette_info(s):
+    """A view's report fields from its silhouette's ``info``: the keying's, and the joint step's change."""
+    info = dict(getattr(s, "info", None) or {})
+    joint = info.pop("joint", None)
+    return {**({"silhouette_key": info} if info else {}), **({"silhouette_joint": joint} if joint else {})}
+
+
 def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timings, settings):
     volume = grid.volume_of(occupancy)
     m = measure(mesh).to_dict()
@@ -1224,7 +1258,7 @@ def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timi
             {"image": session.relpath(session.views[i].image), "angle_deg": session.views[i].angle_deg,
              "R": c.R.tolist(), "t": c.t.tolist(),
              "silhouette_threshold": s.threshold, "silhouette_source": s.source,
-             **({"silhouette_key": s.info} if getattr(s, "info", None) else {})}
+             **_silhouette_info(s)}
             for i, c, s in zip(views, cameras, sils)
         ],
         "camera": camera,

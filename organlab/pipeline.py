@@ -68,6 +68,7 @@ def reconstruct(
     finish: bool = True,
     measure: bool | None = None,
     refine_poses: str = "auto",
+    joint_silhouettes: str = "auto",
 ) -> Reconstruction:
     """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
 
@@ -121,6 +122,10 @@ def reconstruct(
     refine_poses : {'auto', 'on', 'off'}
         Correct the poses from the silhouettes (:func:`organlab.poses.refine_poses`),
         kept only when the leave-out gate accepts; ``'auto'``: when views disagree.
+    joint_silhouettes : {'auto', 'on', 'off'}
+        Segment every view again with the hull of all the views as a prior
+        (:meth:`organlab.silhouette.SilhouetteModel.joint`); ``'auto'``: see
+        :class:`organlab.engine.Settings`.
 
     Returns
     -------
@@ -143,7 +148,7 @@ def reconstruct(
     """
     settings = Settings(voxel_size=voxel_size, threshold=threshold, method=method, hull=hull,
                         color_threshold=color_threshold, tolerance=tolerance, finish=finish, measure=measure,
-                        refine_poses=refine_poses)
+                        refine_poses=refine_poses, joint_silhouettes=joint_silhouettes)
     settings.validate()  # before the session is read
     engine = Engine(session, calibration=calibration, recalibrate=recalibrate, max_memory=max_memory)
     return engine.run(settings, progress=progress)

@@ -13,11 +13,13 @@ scene.  The stage is a chain of small functions::
 :class:`SilhouetteModel`, which keeps what does not depend on the
 threshold), using a view's own ``mask`` where the session gives one, and
 keying in CIE Lab against a ``backdrop`` when the session declares one.
-The result type, :class:`~organlab.masks.Silhouette`, lives on the ground
+:meth:`SilhouetteModel.joint` then segments every view again with the
+hull of all the views as a prior (the joint step, ``_joint``;
+``docs/silhouettes.md``).  The result type, :class:`~organlab.masks.Silhouette`, lives on the ground
 floor (:mod:`organlab.masks`) so every stage can read it.
 
 Modules: ``_subtract`` (the functions above), ``_keying`` (backdrop keying),
-``_model`` (:class:`SilhouetteModel`, :func:`silhouettes`), ``_kernels``
+``_model`` (:class:`SilhouetteModel`, :func:`silhouettes`), ``_joint`` (the joint step), ``_kernels``
 (numba kernels).
 """
 

@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import SessionError
 from ..masks import Silhouette
 from ..session import Session, load_session
+from ._joint import MIN_VIEWS, joint_masks
 from ._keying import KeyInfo, auto_key_threshold, clean_scaled, estimate_backdrop, key_distance
 from ._subtract import auto_threshold, background_model, background_noise, clean_mask, coverage, difference
 
@@ -309,6 +310,67 @@ class SilhouetteModel:
         full = np.broadcast_to(bg, np.shape(self.images[i])) if np.ndim(bg) == 1 else bg
         cov = coverage(self.images[i], np.asarray(full, np.float32) * self.gains[i], mask)
         return Silhouette(mask, cov, float(t), "backdrop", info.to_dict())
+
+
+    def joint(self, silhouettes: Sequence[Silhouette], cameras: Sequence[Any], box: tuple, *,
+              iterations: int | None = None) -> tuple[list[Silhouette], dict]:
+        """The silhouettes segmented again with the model of all the views as a prior (the joint step).
+
+        Each view's first-pass silhouette is refined against the projection
+        of the tolerant visual hull of every view and its own difference
+        image (:mod:`organlab.silhouette._joint`): pixels the other views
+        require and whose colour differs from the background are added,
+        pixels that no view's hull explains are dropped; iterated to
+        agreement.  Given masks are kept as they are.
+
+        Parameters
+        ----------
+        silhouettes : sequence of Silhouette
+            The first pass (:meth:`silhouettes`), one per view.
+        cameras : sequence of Camera
+            One per view.
+        box : ((3,), (3,)) float, mm
+            Where the specimen lies (the session's roi); the prior is carved
+            in it.
+        iterations : int, optional
+            At most this many rounds (default ``organlab.silhouette._joint.ITERATIONS``).
+
+        Returns
+        -------
+        silhouettes : list of Silhouette
+            Changed views have a new mask and coverage; each view's ``info``
+            gains ``joint``: ``{"added": px, "removed": px}``.
+        summary : dict
+            ``iterations``, ``seconds``, ``voxel_mm``, ``views`` (per view
+            ``added``, ``removed``).
+        """
+        sils = list(silhouettes)
+        if len(sils) != len(self) or len(cameras) != len(self):
+            raise ValueError(f"joint: got {len(sils)} silhouettes and {len(cameras)} cameras for {len(self)} views")
+        kw = {} if iterations is None else {"iterations": int(iterations)}
+        masks, summary = joint_masks([s.mask for s in sils], self.differences, list(cameras), box, **kw)
+        out = []
+        for i, (s, m, row) in enumerate(zip(sils, masks, summary["views"])):
+            change = {"added": row["added"], "removed": row["removed"]}
+            info = {**(s.info or {}), "joint": change}
+            if (row["added"] or row["removed"]) and self.masks[i] is None and m.any():
+                out.append(Silhouette(m, self._coverage(i, m), s.threshold, s.source, info))
+            else:
+                out.append(Silhouette(s.mask, s.coverage, s.threshold, s.source, info))
+        return out, summary
+
+    def joint_applies(self) -> bool:
+        """Whether ``joint_silhouettes="auto"`` runs the joint step: at least MIN_VIEWS views, found by background
+        subtraction (not keyed: on the dinoSparseRing photos keyed against their backdrop the step added dark
+        stand and shadow next to the specimen, like-with-like IoU 0.980 -> 0.969), one not given."""
+        return len(self) >= MIN_VIEWS and not self.keyed and any(d is not None for d in self.differences)
+
+    def _coverage(self, i, mask):
+        if not self.keyed:
+            return coverage(self.images[i], self.background, mask)
+        bg = self.background
+        full = np.broadcast_to(bg, np.shape(self.images[i])) if np.ndim(bg) == 1 else bg
+        return coverage(self.images[i], np.asarray(full, np.float32) * self.gains[i], mask)
 
 
 def _map_views(fn, indices):

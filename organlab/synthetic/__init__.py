@@ -68,6 +68,9 @@ __all__ = [
     "SimRig",
     "SimCamera",
     "MDriveSimulator",
+    "make_lit_session",
+    "render_lit",
+    "Painted",
 ]
 
 from ._boards import (
@@ -83,6 +86,7 @@ from ._boards import (
     turntable_board_pose,
 )
 from ._cli import main
+from ._lighting import Painted, make_lit_session, render_lit
 from ._session import DEFAULT_ROI, make_session, with_true_cameras
 from ._specimens import (
     AAAPhantom,
