@@ -43,7 +43,7 @@ from .checks import model_warnings
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
-from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
+from .coloring import PIPELINE_OPTIONS, color_voxels, photo_carve, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, check_grid_memory, check_image_memory
@@ -58,7 +58,7 @@ __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_ME
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
            "ChecksStage", "LiveHull", "run", "pixel_footprint"]
 
-METHODS = ("hull", "coloring", "space_carving")
+METHODS = ("hull", "coloring", "space_carving", "photo")
 HULL_METHODS = ("subvoxel", "thesis")
 
 
@@ -85,10 +85,12 @@ class Settings:
         Silhouette threshold for every view, grey levels (background
         subtraction) or Delta E (a session keyed against a ``backdrop``);
         None = automatic per view.
-    method : {'hull', 'coloring', 'space_carving'}
+    method : {'hull', 'coloring', 'space_carving', 'photo'}
+        ``'photo'``: patch NCC between neighbouring views (textured specimens; docs/coloring.md).
     hull : {'subvoxel', 'thesis'}
     color_threshold : float or None
-        Photo-consistency threshold, grey levels; None = automatic.
+        Photo-consistency threshold, grey levels (``'photo'``: the NCC gain); None = automatic (``'photo'``:
+        :data:`organlab.coloring.DEFAULT_PHOTO_THRESHOLD`).
     tolerance : int
         Views allowed to disagree before a voxel is carved.
     finish : bool
@@ -845,6 +847,13 @@ class Engine:
         carved, sils, cameras = out["carving"], out["silhouettes"], _cameras(out)
         kind = "voxel_coloring" if settings.method == "coloring" else "space_carving"
         bar = clock.bar("coloring")
+        if settings.method == "photo":
+            extra = {} if settings.color_threshold is None else {"threshold": settings.color_threshold}
+            res = photo_carve(self.images, cameras, carved.occupancy, carved.grid, masks=[s.mask for s in sils],
+                              progress=bar, **extra)
+            bar.close()
+            return ColoringStage(res.occupancy, res.colors, res.colored, float(res.threshold),
+                                 report_entry(res, carved.occupancy, carved.grid))
         res = color_voxels(self.images, cameras, carved.occupancy, carved.grid, method=kind,
                            masks=[s.mask for s in sils], progress=bar,
                            threshold="auto" if settings.color_threshold is None else settings.color_threshold,
