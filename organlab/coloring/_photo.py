@@ -8,8 +8,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
 from ..camera import Camera
 from ..grid import VoxelGrid
@@ -22,6 +22,7 @@ from ._photo_kernels import free_votes, surface_depth, warp_samples
 DEFAULT_PHOTO_THRESHOLD = 0.25
 
 _MIN_SCORE = 0.5  # the best depth's score must itself be a match (mean of the two best pairs' NCC)
+_PEAK = 0.1  # NCC: how far below the best score the peak's front is taken
 _MIN_STD = 2.0  # grey levels: windows flatter than this (either image) give no evidence
 _NEIGHBOUR_DEG = (12.0, 40.0)  # angles between a view and the views it is compared with
 _MAX_NEIGHBOURS = 4
@@ -40,22 +41,28 @@ def _neighbours(cameras, centre):
     return out
 
 
+def _box(a, window):
+    """Mean over ``window`` x ``window`` px of every ``(h, w)`` slice of ``a`` (zero outside)."""
+    a = np.ascontiguousarray(a, np.float32)
+    flat = a.reshape((-1,) + a.shape[-2:])
+    out = np.empty_like(flat)
+    for k in range(len(flat)):
+        out[k] = cv2.boxFilter(flat[k], -1, (window, window), borderType=cv2.BORDER_CONSTANT)
+    return out.reshape(a.shape)
+
+
 def _window_ncc(ref, warped, valid_ref, window):
     """NCC of ``window``-px square patches: ``ref (h, w)`` against ``warped (J, S, h, w)`` (NaN = invalid)."""
-    size = (1, 1, window, window)
     ok = np.isfinite(warped)
     w = np.where(ok, warped, 0.0).astype(np.float32)
-    fr = ndimage.uniform_filter(ok.astype(np.float32), size, mode="constant")
-    r = np.broadcast_to(ref, warped.shape)
-    mr = ndimage.uniform_filter(ref, window, mode="constant")
-    mrr = ndimage.uniform_filter(ref * ref, window, mode="constant")
-    mw = ndimage.uniform_filter(w, size, mode="constant")
-    mww = ndimage.uniform_filter(w * w, size, mode="constant")
-    mrw = ndimage.uniform_filter(r * w, size, mode="constant")
+    ref = ref.astype(np.float32)
+    fr = _box(ok.astype(np.float32), window)
+    mr, mrr = _box(ref, window), _box(ref * ref, window)
+    mw, mww, mrw = _box(w, window), _box(w * w, window), _box(ref * w, window)
     vr = mrr - mr * mr
     vw = mww - mw * mw
     cov = mrw - mr * mw
-    vfrac = ndimage.uniform_filter(valid_ref.astype(np.float32), window, mode="constant")
+    vfrac = _box(valid_ref.astype(np.float32), window)
     good = (fr > 0.999) & (vfrac > 0.999) & (vr > _MIN_STD**2) & (vw > _MIN_STD**2)
     with np.errstate(invalid="ignore", divide="ignore"):
         ncc = cov / np.sqrt(vr * vw)
@@ -99,7 +106,13 @@ def _view_evidence(i, nbrs, grey, fg, cams_packed, cameras, occ, grid, lo, hi, d
     filled = np.where(np.isfinite(score), score, -np.inf)
     best = np.argmax(filled, axis=0)
     s_best = np.take_along_axis(filled, best[None], 0)[0]
-    free_to = best * dt - margin
+    # the front of the peak: the nearest depth from which the score stays within _PEAK of the best;
+    # a broad peak (a surface seen at a grazing angle, a slanted wall) stops the free ray early
+    near = filled >= (s_best - _PEAK)[None]
+    steps = np.arange(len(score))[:, None, None]
+    beyond = (steps <= best[None]) & ~near
+    front = np.where(beyond.any(0), (np.where(beyond, steps, -1).max(0) + 1), 0)
+    free_to = front * dt - margin
     ok = (np.isfinite(s0) & (s_best >= _MIN_SCORE) & (s_best - s0 >= threshold) & (free_to > 0)).ravel()
     if not ok.any():
         return None
