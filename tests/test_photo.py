@@ -13,6 +13,7 @@ import pytest
 from scipy import ndimage
 
 import organlab as ol
+from organlab.carving import hull_field
 from organlab.coloring import DEFAULT_PHOTO_THRESHOLD, carved_depth_picture, carved_where, photo_carve, report_entry
 from organlab.raster import model_mask
 from organlab.synthetic import make_session
@@ -33,13 +34,15 @@ def _fraction_inside(spec, grid, region, n=3):
 @pytest.fixture(scope="module")
 def bowls(tmp_path_factory):
     spec = BowlSpecimen()
-    folder = make_session(tmp_path_factory.mktemp("photo") / "bowls", specimen=spec, n_views=18, hard=True,
+    folder = tmp_path_factory.mktemp("photo") / "bowls"
+    make_session(folder, specimen=spec, n_views=18, hard=True,
                           views_only=True, supersample=1, n_background=6, seed=3)
     s = ol.load_session(folder)
     cal, _ = ol.calibration_for(s)
     cams, grid = cal.cameras(s), ol.VoxelGrid.from_session(s, voxel_size=2.0)
-    masks = [x.mask for x in ol.silhouettes(s)]
-    hull = ol.carve(masks, cams, grid)
+    sils = ol.silhouettes(s)
+    masks = [x.mask for x in sils]
+    hull = hull_field(sils, cams, grid, sparse=True).occupancy()  # what the engine colours
     images = [s.read(v.image) for v in s.views]
     frac = _fraction_inside(spec, grid, ndimage.binary_dilation(hull, iterations=2))
     return folder, spec, cams, grid, masks, hull, images, frac
@@ -55,9 +58,9 @@ def test_specimens_exact_volume_and_texture():
     rng = np.random.default_rng(0)
     for spec in (BowlSpecimen(), GrooveSaddleSpecimen()):
         lo, hi = spec.bounds
-        p = lo + rng.random((400_000, 3)) * (hi - lo)
+        p = lo + rng.random((100_000, 3)) * (hi - lo)
         mc = spec.inside(p).mean() * np.prod(hi - lo)
-        assert abs(mc / spec.volume - 1) < 0.01  # Monte Carlo standard error about 0.15 %
+        assert abs(mc / spec.volume - 1) < 0.015  # Monte Carlo standard error about 0.3 %
         assert spec.volume < np.pi * spec.star.r_max**2 * (hi[2] - lo[2])
     line = np.stack([np.zeros(400), np.full(400, 35.0), np.linspace(10, 70, 400)], 1)
     a = photo_albedo(line)

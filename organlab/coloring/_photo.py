@@ -162,7 +162,8 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
         Sweeps; each starts from the previous one's carved surface.
     margin : float, mm, optional
         How far in front of the matched depth a free ray stops (along the
-        ray); default one voxel.
+        ray); default 1.5 voxels (carving right to the surface would cut
+        the voxels the surface crosses, which the hull keeps).
     guard : bool
         Silhouette guard (see :func:`color_voxels`).
     progress : callable(done, total), optional
@@ -216,7 +217,7 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
     # depth step: the distance that moves a point by about 0.5 px in a neighbour 25 degrees away
     px_mm = min(c.K[0, 0] / np.linalg.norm(c.center - centre) for c in cameras)
     dt = min(0.5 * h, 0.5 / (px_mm * np.sin(np.radians(25.0))))
-    margin = h if margin is None else float(margin)
+    margin = 1.5 * h if margin is None else float(margin)
     total = passes * n_views
     done = 0
     carved_per_pass = []
