@@ -127,6 +127,7 @@ def test_carved_where_and_picture(tmp_path):
     assert cv2.imread(str(p)).shape[0] > 100
 
 
+@pytest.mark.slow
 def test_engine_offers_photo(bowls, tmp_path):
     """The one engine runs it: report.json says where it carved, voxels.npz holds the carved occupancy."""
     folder = bowls[0]
