@@ -164,6 +164,8 @@ class Settings:
             raise SettingsError("hull", f"must be one of {HULL_METHODS}, got {self.hull!r}")
         if self.color_threshold is not None and not _finite_positive(self.color_threshold):
             raise SettingsError("color_threshold", f"must be a finite number of grey levels > 0, got {self.color_threshold!r}")
+        if self.method == "photo" and self.color_threshold is not None and not self.color_threshold < 2:
+            raise SettingsError("color_threshold", f"for method 'photo' is an NCC gain in (0, 2), got {self.color_threshold!r}")
         if isinstance(self.tolerance, bool) or not isinstance(self.tolerance, (int, np.integer)) or self.tolerance < 0:
             raise SettingsError("tolerance", f"must be an integer >= 0 (views), got {self.tolerance!r}")
         if not isinstance(self.finish, (bool, np.bool_)):
