@@ -79,9 +79,10 @@ def test_photo_carves_the_hidden_bowls(bowls):
     ex, lost = _excess_lost(r.occupancy, frac, spec, grid)
     assert r.method == "photo" and r.threshold == DEFAULT_PHOTO_THRESHOLD
     assert not np.any(r.occupancy & ~hull)
-    # measured at 2 mm, 18 views: hull excess 20.5 %, 68 % of it removed; lost 0.16 % -> 0.6 %
+    # measured at 2 mm, 18 views: hull excess 8.67 %, 63.2 % of it removed; lost 1.24 % -> 1.59 %
+    # (the 2 mm hull's own loss is voxel quantisation); bounds leave room for noise, not for a regression
     assert (ex0 - ex) / ex0 > 0.5
-    assert lost - lost0 < 1.0
+    assert lost - lost0 < 0.7
     for c, m in zip(cams, masks):  # the guard: every silhouette pixel the hull explained stays explained
         assert not (m & model_mask(hull, c, grid=grid) & ~model_mask(r.occupancy, c, grid=grid)).any()
     entry = report_entry(r, hull, grid)
@@ -96,8 +97,8 @@ def test_photo_threshold_orders_the_carving(bowls):
     folder, spec, cams, grid, masks, hull, images, frac = bowls
     lo = photo_carve(images, cams, hull, grid, masks=masks, threshold=0.15, passes=1)
     hi = photo_carve(images, cams, hull, grid, masks=masks, threshold=0.6, passes=1)
-    assert hi.n_carved <= lo.n_carved
-    assert lo.n_carved > 0
+    assert hi.n_carved <= lo.n_carved  # measured (2 mm, one pass): 2266 <= 2628 voxels
+    assert hi.n_carved > 0.5 * lo.n_carved  # no cliff over 4x of the gain
 
 
 def test_photo_bad_input(bowls):
