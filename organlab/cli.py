@@ -1,7 +1,7 @@
 """The ``organlab`` command line.
 
     organlab reconstruct SESSION --out DIR [--voxel-size MM] [--threshold T]
-                         [--method hull|coloring|space_carving] [--color-threshold X]
+                         [--method hull|coloring|space_carving|photo] [--color-threshold X]
                          [--calibration PATH] [--recalibrate] [--measure] [--raw-surface]
     organlab calibrate SESSION (--out DIR | --in-place) [--figures DIR]
     organlab init FOLDER [--step DEG] [--cameras FILE] [--board 9x6] [--square MM] [--roi ...] [--backdrop ...] [--force]
@@ -34,6 +34,7 @@ from .batch import batch, parse_values, sweep
 from .calibration import calibrate, export_cameras
 from .capture import run_capture
 from .cliparser import OneLineParser as _Parser
+from .coloring import carved_depth_picture
 from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
 from .pipeline import reconstruct, summary_table, write_outputs
@@ -150,16 +151,18 @@ def _parser():
     r.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
     r.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
                    help="silhouette threshold in grey levels (default: Li's automatic threshold per view)")
-    r.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull",
+    r.add_argument("--method", choices=["hull", "coloring", "space_carving", "photo"], default="hull",
                    help="hull: visual hull (default); coloring: Seitz & Dyer voxel coloring on the hull (recovers concavities "
                         "no silhouette shows; needs the cameras above the specimen); space_carving: the same for any "
-                        "camera layout (slower)")
+                        "camera layout (slower); photo: patch NCC between neighbouring views (recommended for a "
+                        "textured specimen)")
     r.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",
                    help="subvoxel: sub-pixel silhouettes, surface between voxel centres (default); "
                         "thesis: the thesis's 8-corner bounding-box test")
     r.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",
                    help="photo-consistency threshold (grey levels) for --method coloring/space_carving "
-                   "(default: automatic, from the hull's surface and the image noise; report.json coloring.threshold)")
+                   "(default: automatic, from the hull's surface and the image noise; report.json coloring.threshold); "
+                   "for --method photo the NCC gain (default 0.25)")
     r.add_argument("--tolerance", type=int, default=0, metavar="K", help="views allowed to disagree before a voxel is carved")
     r.add_argument("--calibration", type=Path, default=None, metavar="PATH",
                    help="use this calibration.json (checked against the session) instead of the session's own")
@@ -456,6 +459,9 @@ def _pictures(rec, folder, voxel_size):
     title = f"{rec.session.name}: {rec.report['mesh_volume_mm3'] / 1000:.1f} cm3 at {voxel_size:g} mm"
     title += f" ({ref:+.2f} % vs reference)" if ref is not None else ""
     out = {"picture": mesh_snapshot(rec.mesh, folder / "mesh.png", title=title)}
+    if (rec.coloring or {}).get("depth_map") is not None:  # --method photo: the carved depth over the hull
+        out["carved"] = carved_depth_picture(rec.coloring, folder / "carved.png",
+                                             title=f"{rec.session.name}: carved below the hull (--method photo)")
     if rec.report.get("agreement"):
         out["agreement"] = agreement_chart(rec.report, folder / "agreement.png")
         worst = rec.agreement.worst  # the one ranking (organlab.engine.AgreementFigures)
@@ -607,8 +613,8 @@ def _sweep_parsers(sub):
     b.add_argument("--voxel-size", type=_positive_float, default=1.0, metavar="MM", help="voxel edge in mm (default 1)")
     b.add_argument("--threshold", type=_positive_float, default=None, metavar="T",
                    help="silhouette threshold in grey levels (default: automatic per view)")
-    b.add_argument("--method", choices=["hull", "coloring", "space_carving"], default="hull",
-                   help="hull: visual hull only (default); coloring / space_carving: then photo-consistency")
+    b.add_argument("--method", choices=["hull", "coloring", "space_carving", "photo"], default="hull",
+                   help="hull: visual hull only (default); coloring / space_carving / photo: then photo-consistency")
     b.add_argument("--hull", choices=["subvoxel", "thesis"], default="subvoxel",
                    help="subvoxel: the sub-voxel hull field (default); thesis: the 8-corner bounding-box test")
     b.add_argument("--color-threshold", type=_positive_float, default=None, metavar="X",

@@ -43,7 +43,7 @@ from .checks import model_warnings, roi_faces_touched
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
-from .coloring import PIPELINE_OPTIONS, color_voxels, report_entry
+from .coloring import PIPELINE_OPTIONS, color_voxels, photo_carve, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, check_grid_memory, check_image_memory
@@ -58,7 +58,7 @@ __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_ME
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
            "ChecksStage", "LiveHull", "run", "pixel_footprint"]
 
-METHODS = ("hull", "coloring", "space_carving")
+METHODS = ("hull", "coloring", "space_carving", "photo")
 HULL_METHODS = ("subvoxel", "thesis")
 #: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments by subtraction.
 JOINT_MODES = ("auto", "on", "off")
@@ -87,10 +87,12 @@ class Settings:
         Silhouette threshold for every view, grey levels (background
         subtraction) or Delta E (a session keyed against a ``backdrop``);
         None = automatic per view.
-    method : {'hull', 'coloring', 'space_carving'}
+    method : {'hull', 'coloring', 'space_carving', 'photo'}
+        ``'photo'``: patch NCC between neighbouring views (textured specimens; docs/coloring.md).
     hull : {'subvoxel', 'thesis'}
     color_threshold : float or None
-        Photo-consistency threshold, grey levels; None = automatic.
+        Photo-consistency threshold, grey levels (``'photo'``: the NCC gain); None = automatic (``'photo'``:
+        :data:`organlab.coloring.DEFAULT_PHOTO_THRESHOLD`).
     tolerance : int
         Views allowed to disagree before a voxel is carved.
     finish : bool
@@ -174,6 +176,8 @@ class Settings:
             raise SettingsError("hull", f"must be one of {HULL_METHODS}, got {self.hull!r}")
         if self.color_threshold is not None and not _finite_positive(self.color_threshold):
             raise SettingsError("color_threshold", f"must be a finite number of grey levels > 0, got {self.color_threshold!r}")
+        if self.method == "photo" and self.color_threshold is not None and not self.color_threshold < 2:
+            raise SettingsError("color_threshold", f"for method 'photo' is an NCC gain in (0, 2), got {self.color_threshold!r}")
         if isinstance(self.tolerance, bool) or not isinstance(self.tolerance, (int, np.integer)) or self.tolerance < 0:
             raise SettingsError("tolerance", f"must be an integer >= 0 (views), got {self.tolerance!r}")
         if not isinstance(self.finish, (bool, np.bool_)):
@@ -914,6 +918,13 @@ class Engine:
         carved, sils, cameras = out["carving"], out["silhouettes"], _cameras(out)
         kind = "voxel_coloring" if settings.method == "coloring" else "space_carving"
         bar = clock.bar("coloring")
+        if settings.method == "photo":
+            extra = {} if settings.color_threshold is None else {"threshold": settings.color_threshold}
+            res = photo_carve(self.images, cameras, carved.occupancy, carved.grid, masks=[s.mask for s in sils],
+                              progress=bar, **extra)
+            bar.close()
+            return ColoringStage(res.occupancy, res.colors, res.colored, float(res.threshold),
+                                 report_entry(res, carved.occupancy, carved.grid))
         res = color_voxels(self.images, cameras, carved.occupancy, carved.grid, method=kind,
                            masks=[s.mask for s in sils], progress=bar,
                            threshold="auto" if settings.color_threshold is None else settings.color_threshold,

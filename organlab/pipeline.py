@@ -82,7 +82,10 @@ def reconstruct(
     voxel_size : float, mm
     threshold : float, optional
         Silhouette threshold in grey levels (automatic per view when omitted).
-    method : {'hull', 'coloring', 'space_carving'}
+    method : {'hull', 'coloring', 'space_carving', 'photo'}
+        ``'photo'``: patch NCC between neighbouring views, carving free space
+        in front of matched depths (:func:`organlab.coloring.photo_carve`;
+        ``color_threshold`` is then its NCC gain).
         ``'coloring'`` runs Seitz & Dyer's layered voxel colouring on the hull
         (cameras must all lie above the specimen, or on one side of it: the
         ordinal visibility constraint, checked); ``'space_carving'`` the

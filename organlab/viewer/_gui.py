@@ -11,7 +11,7 @@ from ..errors import OrganlabError
 from ..preflight import check_grid_memory
 from . import _scene
 
-METHODS = ("hull", "coloring", "space_carving")
+METHODS = ("hull", "coloring", "space_carving", "photo")
 HULLS = ("subvoxel", "thesis")
 MODELS = ("mesh", "voxels", "mesh + voxels")
 #: Bounds of the controls, enforced on the server: viser does not enforce a slider's limits, and a
