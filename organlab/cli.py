@@ -44,7 +44,7 @@ from .session import load_session
 from .surface import mesh_result
 from .synthetic import SimRig, main as synth_main
 from .validate import printable
-from .viewer import CaptureViewer, SessionViewer
+from .viewer import CaptureViewer, SessionViewer, is_loopback
 
 #: Settings (organlab.engine.Settings) whose flag is not --NAME
 _FLAGS = {"finish": "--raw-surface", "measure": "--measure"}
@@ -97,13 +97,16 @@ def _check_listen(host, port, option="--port"):
 
 
 def _loopback(host):
-    import ipaddress
-    import socket
+    return is_loopback(host)
 
-    try:
-        return all(ipaddress.ip_address(info[4][0]).is_loopback for info in socket.getaddrinfo(host, 0))
-    except (OSError, ValueError, UnicodeError):
-        return False
+
+def _warn_host(host):
+    """The warning of a viewer bound to an address other machines reach (it then needs its token)."""
+    if not _loopback(host):
+        print(f"organlab: warning: --host {printable(host)} is not this machine only: anyone who can reach it and "
+              "has the link with its token gets the session's photos and can start reconstructions; requests "
+              "without the token are refused; use 127.0.0.1 (and an SSH tunnel) unless the network is trusted",
+              file=sys.stderr)
 
 
 def _start_server(start, what):
@@ -304,6 +307,8 @@ def _capture_parser(sub):
                    "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
     k.add_argument("--port", type=_port, default=None, help="with --view: TCP port on 127.0.0.1 (default 8080, the next "
                    "free one if taken; a port given and taken is refused)")
+    k.add_argument("--host", default="127.0.0.1", help="with --view: interface to bind (default 127.0.0.1: this "
+                   "machine only; any other needs the token printed in the URL)")
     k.add_argument("--view-voxel-size", type=_positive_float, default=2.0, metavar="MM",
                    help="with --view: voxel edge of the live hull in mm (default 2)")
 
@@ -324,10 +329,7 @@ def _view(a):
     import time
 
     port = _check_listen(a.host, a.port)
-    if not _loopback(a.host):
-        print(f"organlab: warning: --host {printable(a.host)} is not this machine only: anyone who can reach it gets "
-              "the session's photos and can start reconstructions, with no access control; use 127.0.0.1 "
-              "(and an SSH tunnel) unless the network is trusted", file=sys.stderr)
+    _warn_host(a.host)
     # the session and --result are checked before the server starts; then the URL, then each start-up step
     app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host,
                                               port=port, say=lambda line: print(line, flush=True)), "organlab view")
@@ -530,8 +532,10 @@ def _capture_viewer(a):
     if a.no_board:
         raise OrganlabError("--view needs the board images on the table (the views' camera poses come from them); "
                             "drop --no-board or --view")
-    port = _check_listen("127.0.0.1", a.port)
-    viewer = _start_server(lambda: CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=port), "organlab capture --view")
+    port = _check_listen(a.host, a.port)
+    _warn_host(a.host)
+    viewer = _start_server(lambda: CaptureViewer(a.out, voxel_size=a.view_voxel_size, host=a.host, port=port),
+                           "organlab capture --view")
     print(f"organlab capture: live view at {viewer.url}  (the hull appears with the first view)")
     return viewer
 

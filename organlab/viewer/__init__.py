@@ -7,10 +7,15 @@
 * :class:`CaptureViewer` -- a LiveView following a capture
   (``organlab capture ... --view``).
 
+* :func:`is_loopback` -- whether a ``host`` is this machine only (any other needs
+  the viewer's token in the URL: :mod:`organlab.viewer._access`).
+
 viser is imported only when one of them is used.
 """
 
-__all__ = ["CaptureViewer", "LiveView", "SessionViewer", "Settings"]
+from ._access import is_loopback
+
+__all__ = ["CaptureViewer", "LiveView", "SessionViewer", "Settings", "is_loopback"]
 
 
 def __getattr__(name):

@@ -162,7 +162,7 @@ class SessionViewer:
         Voxel size of the first reconstruction.
     views : sequence of int, optional
         Use only these views (e.g. every third one, for a quick look).
-    host, port : as :class:`LiveView`
+    host, port, token : as :class:`LiveView` (a non-loopback host requires a token)
     stream : bool
         Carve view by view at start, updating the scene after each view.
 
@@ -177,7 +177,7 @@ class SessionViewer:
 
     def __init__(self, session: Session | str | Path, *, result: str | Path | None = None, voxel_size: float = 1.0,
                  views: Any = None, host: str = "127.0.0.1", port: int = 8080, stream: bool = True,
-                 verbose: bool = False, say: Any = None):
+                 verbose: bool = False, say: Any = None, token: str | None = None):
         say = say or (lambda _line: None)
         self.session = session if isinstance(session, Session) else load_session(session)
         s = self.session
@@ -193,7 +193,7 @@ class SessionViewer:
         self.errors = []
         self._runs = 0  # re-runs shown; the one running is "run {self._runs + 1}"
         # the server first: its address is printed (say) and the page shows the start-up steps
-        self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}")
+        self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}", token=token)
         say(f"organlab view: {s.name} at {self.url}  (Ctrl-C stops)")
         notice = self.live.server.gui.add_markdown("*starting*")
 
