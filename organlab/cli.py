@@ -34,6 +34,7 @@ from .batch import batch, parse_values, sweep
 from .calibration import calibrate, export_cameras
 from .capture import run_capture
 from .cliparser import OneLineParser as _Parser
+from .engine import Reconstruction
 from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
 from .pipeline import reconstruct, summary_table, write_outputs
@@ -366,8 +367,10 @@ def _mesh(a):
 def _mesh_locked(a):
     steps = a.repair or a.smooth or a.remesh is not None
     # no step named: all of them, remeshing at 1.5 voxels
+    rec = Reconstruction.load(a.result)  # every file checked: one line for a damaged one
     report, paths = mesh_result(
         a.result,
+        volume=(rec.surface_volume(), rec.grid),
         repair=a.repair or not steps,
         smooth=a.smooth or not steps,
         remesh=a.remesh if steps else "auto",

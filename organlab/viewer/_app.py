@@ -12,7 +12,6 @@ running one.  No stage runs here: this is a face.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,7 @@ import numpy as np
 from ..agreement import model_mask
 from ..calibration import needs_calibration
 from ..engine import AgreementFigures, Engine, Reconstruction, Settings
-from ..errors import SessionError
+from ..errors import OrganlabError, SessionError
 from ..session import Session, load_session
 from ._gui import Controls
 from ._live import LiveView
@@ -50,13 +49,14 @@ def check_result_folder(folder: str | Path, session: Session) -> Path:
     for name in ("voxels.npz", "mesh.ply"):
         if not (folder / name).is_file():
             raise SessionError(f"{folder / name}: missing, so {folder} is not a result folder; {fix}")
-    rep = folder / "report.json"
-    if rep.is_file():
-        try:
-            report = json.loads(rep.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as e:
-            raise SessionError(f"{rep}: cannot be read ({e}); {fix}") from None
-        images = [v.get("image") for v in report.get("views", []) if isinstance(v, dict)]
+    try:  # every file read through its type, checked: one line for a damaged one, before the server starts
+        report = Reconstruction.load(folder, session=session).report
+    except SessionError:
+        raise
+    except OrganlabError as e:
+        raise SessionError(str(e)) from None
+    if report:
+        images = [v.get("image") for v in report.get("views", [])]
         mine = [session.relpath(v.image) for v in session.views]
         name = report.get("session")
         if (name is not None and name != session.name) or (images and images != mine):
