@@ -367,7 +367,7 @@ def _mesh(a):
 def _mesh_locked(a):
     steps = a.repair or a.smooth or a.remesh is not None
     # no step named: all of them, remeshing at 1.5 voxels
-    rec = Reconstruction.load(a.result)  # every file checked: one line for a damaged one
+    rec = Reconstruction.load(a.result, mesh=False)  # every file it reads checked: one line for a damaged one
     report, paths = mesh_result(
         a.result,
         volume=(rec.surface_volume(), rec.grid),
@@ -481,8 +481,10 @@ def _calibrate(a):
     cal = calibrate(session, progress=bar)
     bar.close()
     out.mkdir(parents=True, exist_ok=True)
-    path = cal.save(out / "calibration.json")
+    # the figures first, calibration.json last (atomically): a run killed before it ends leaves no calibration.json,
+    # so the same command runs again (one killed after it finished left a complete result)
     figs = check_figures(session, cal, a.figures or out / "calibration_check")
+    path = cal.save(out / "calibration.json")
     print(f"organlab calibrate: {session.name} -> {path}")
     for line in cal.summary():
         print(f"  {line}")

@@ -489,7 +489,7 @@ class Reconstruction:
         return paths
 
     @classmethod
-    def load(cls, folder: str | Path, *, session: Session | None = None) -> Reconstruction:
+    def load(cls, folder: str | Path, *, session: Session | None = None, mesh: bool = True) -> Reconstruction:
         """A result folder written by :meth:`save` (``organlab reconstruct --out``) read back.
 
         The voxels, field and colours from ``voxels.npz``, the mesh from
@@ -499,7 +499,9 @@ class Reconstruction:
         without pickles, its decompressed size checked against the memory
         available before decoding, every array typed, shaped and finite;
         ``report.json`` strict JSON with the keys read here typed; the mesh
-        checked by :func:`organlab.surface.read_ply`.
+        checked by :func:`organlab.surface.read_ply`.  With ``mesh=False``
+        ``mesh.ply`` is neither needed nor read (:attr:`mesh` None): ``organlab
+        mesh`` makes its surface from the voxels.
 
         Raises
         ------
@@ -523,7 +525,7 @@ class Reconstruction:
             raise OrganlabError(f"{folder}: {'is a file, not' if folder.exists() else 'no such'} result folder; "
                                 f"write one with 'organlab reconstruct SESSION --out {folder}'")
         vox, ply, rep = folder / "voxels.npz", folder / "mesh.ply", folder / "report.json"
-        for p in (vox, ply):
+        for p in (vox, ply) if mesh else (vox,):
             if not p.is_file():
                 raise OrganlabError(f"{p}: missing; write the folder with 'organlab reconstruct SESSION --out {folder}'")
         arrays = validate.read_npz(vox, fix=fix, max_bytes=available_memory())
@@ -540,12 +542,12 @@ class Reconstruction:
         if colors is not None and (colors.dtype != np.uint8 or colors.shape != (*occ.shape, 3)):
             raise OrganlabError(f"{vox}: colors: {colors.dtype} {colors.shape}, expected uint8 {(*occ.shape, 3)}; {fix}")
         report = _read_report(rep, fix) if rep.is_file() else {}
-        mesh = read_ply(ply)
+        surf = read_ply(ply) if mesh else None
         lo, hi = grid.bounds
         settings = Settings(voxel_size=grid.voxel_size, method=report.get("method", "hull"),
                             hull=report.get("hull", "subvoxel"), roi=(tuple(lo), tuple(hi)))
         coloring = report.get("coloring") or {}
-        return cls(session, grid, occ, mesh, [], [], report, field, colors, None,
+        return cls(session, grid, occ, surf, [], [], report, field, colors, None,
                    settings=settings, agreement=AgreementFigures.from_report(report),
                    color_threshold=coloring.get("threshold"), aaa_error=report.get("aaa_error"))
 

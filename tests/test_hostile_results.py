@@ -193,8 +193,6 @@ def test_a_small_file_holding_a_huge_array_is_refused_before_decoding(result, tm
     (lambda d: (d / "voxels.npz").write_bytes((d / "voxels.npz").read_bytes()[:-100]), "voxels.npz"),
     (lambda d: np.savez(d / "voxels.npz", occupancy=np.ones((3, 3, 3), bool), origin_mm=np.zeros(3),
                         voxel_size_mm=np.float64(np.nan)), "voxel_size_mm: must be a finite number"),
-    (lambda d: (d / "mesh.ply").write_bytes((d / "mesh.ply").read_bytes()[:300]), "mesh.ply"),
-    (lambda d: (d / "mesh.ply").unlink(), "mesh.ply: missing"),
 ])
 def test_organlab_mesh_on_a_damaged_result_is_one_line(result, tmp_path, capsys, damage, needle):
     _, folder, _ = result
@@ -204,6 +202,19 @@ def test_organlab_mesh_on_a_damaged_result_is_one_line(result, tmp_path, capsys,
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and needle in err and "Traceback" not in err, err
     assert not (work / "surface").exists()
+
+
+@pytest.mark.parametrize("damage, needle", [
+    (lambda d: (d / "mesh.ply").write_bytes((d / "mesh.ply").read_bytes()[:300]), "mesh.ply: not a mesh"),
+    (lambda d: (d / "mesh.ply").unlink(), "mesh.ply: missing"),
+])
+def test_a_damaged_or_missing_mesh_is_one_line(result, tmp_path, damage, needle):
+    _, folder, _ = result
+    work = _copy(folder, tmp_path / "r")
+    damage(work)
+    with pytest.raises(OrganlabError, match=needle):
+        Reconstruction.load(work)
+    assert Reconstruction.load(work, mesh=False).mesh is None  # organlab mesh does not need it
 
 
 def test_organlab_mesh_reads_through_the_result_type(result, tmp_path, capsys):
