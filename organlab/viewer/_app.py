@@ -21,6 +21,7 @@ import numpy as np
 from ..agreement import model_mask
 from ..calibration import needs_calibration
 from ..engine import AgreementFigures, Engine, Reconstruction, Settings
+from .. import validate
 from ..errors import OrganlabError, SessionError
 from ..session import Session, load_session
 from ._gui import Controls
@@ -49,20 +50,24 @@ def check_result_folder(folder: str | Path, session: Session) -> Path:
     for name in ("voxels.npz", "mesh.ply"):
         if not (folder / name).is_file():
             raise SessionError(f"{folder / name}: missing, so {folder} is not a result folder; {fix}")
-    try:  # every file read through its type, checked: one line for a damaged one, before the server starts
-        report = Reconstruction.load(folder, session=session).report
-    except SessionError:
-        raise
-    except OrganlabError as e:
-        raise SessionError(str(e)) from None
-    if report:
-        images = [v.get("image") for v in report.get("views", [])]
+    rep = folder / "report.json"
+    report = validate.read_json(rep, error=SessionError, fix=fix) if rep.is_file() else {}
+    if isinstance(report, dict):  # another session's result first: the likelier mistake than a damaged file
+        views = report.get("views") if isinstance(report.get("views"), list) else []
+        images = [v.get("image") for v in views if isinstance(v, dict)]
         mine = [session.relpath(v.image) for v in session.views]
         name = report.get("session")
         if (name is not None and name != session.name) or (images and images != mine):
             raise SessionError(
-                f"{folder}: made from session '{name}' ({len(images)} views), not from {session.root} "
-                f"('{session.name}', {len(mine)} views); view it with its own session, or {fix}")
+                f"{folder}: made from session '{validate.printable(name)}' ({len(images)} views), not from "
+                f"{session.root} ('{validate.printable(session.name)}', {len(mine)} views); view it with its own "
+                f"session, or {fix}")
+    try:  # every file read through its type, checked: one line for a damaged one, before the server starts
+        Reconstruction.load(folder, session=session)
+    except SessionError:
+        raise
+    except OrganlabError as e:
+        raise SessionError(str(e)) from None
     return folder
 
 
