@@ -360,6 +360,8 @@ def _mesh_parser(sub):
 
 
 def _mesh(a):
+    if a.result.is_dir():  # a read-only result folder: one line before the work
+        _check_writable(a.result / "surface" if (a.result / "surface").is_dir() else a.result)
     with lock_output_dir(a.result, required=False):  # not while a reconstruct replaces the same folder
         return _mesh_locked(a)
 
@@ -470,6 +472,17 @@ def _pictures(rec, folder, voxel_size):
     return out
 
 
+def _check_writable(folder):
+    """Refuse, in one line, a folder that cannot take a file (made if missing)."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError as e:
+        raise OrganlabError(f"{folder}: cannot write here ({e.strerror or e}); choose a writable folder") from None
+
+
 def _calibrate(a):
     session = load_session(a.session)
     out = session.root if a.in_place else a.out
@@ -477,6 +490,7 @@ def _calibrate(a):
         raise OrganlabError(f"{out}: exists and is not a folder; give --out a folder")
     if not a.in_place and (out / "calibration.json").exists() and not a.force:
         raise OrganlabError(f"{out / 'calibration.json'}: already exists; give --force to replace it, or another --out")
+    _check_writable(out)  # before the fit, not after it
     bar = _bars(a.quiet)("calibration")
     cal = calibrate(session, progress=bar)
     bar.close()
@@ -697,6 +711,15 @@ def main(argv=None):
         return handler(args)
     except OrganlabError as e:  # one line: text from files (names, paths) with its control characters escaped
         print(f"organlab: error: {printable(e)}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a full disk, a read-only folder, a device gone, on any path: one line naming the file
+        where = f" ({printable(e.filename)})" if e.filename else ""
+        print(f"organlab: error: {printable(e.strerror or e)}{where}; free some space or use a writable folder, "
+              "and run the command again", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("organlab: error: out of memory; give --max-memory, a larger --voxel-size or fewer views, or free "
+              "memory", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("organlab: interrupted", file=sys.stderr)

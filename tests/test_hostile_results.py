@@ -238,3 +238,86 @@ def test_view_result_with_a_damaged_file_is_one_line_before_the_server(result, t
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert p.returncode == 2 and len(lines) == 1 and "voxels.npz: unreadable" in lines[0], p.stderr
     assert "http://" not in p.stdout  # refused before the server started
+
+
+# ------------------------------------------------------------- read-only folders and a full disk, on every command
+def _immutable(folder, on=True):
+    """chattr +i: a folder even root cannot write into (root ignores permission bits); False when unsupported."""
+    return subprocess.run(["chattr", "+i" if on else "-i", str(folder)], capture_output=True).returncode == 0
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    made = []
+
+    def make(folder):
+        if not _immutable(folder):
+            pytest.skip("chattr +i not permitted here: no folder is read-only for root")
+        made.append(folder)
+        return folder
+
+    yield make
+    for f in made:
+        _immutable(f, on=False)
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("organlab: error:") and "Traceback" not in err, err
+    assert all(n in lines[0] for n in needles), lines[0]
+
+
+def test_mesh_into_a_read_only_result_folder_is_one_line(result, tmp_path, capsys, read_only):
+    _, folder, _ = result
+    work = read_only(_copy(folder, tmp_path / "r"))
+    assert main(["mesh", str(work), "--repair"]) == 2
+    _one_line_error(capsys, str(work), "cannot write here")
+
+
+def test_calibrate_into_a_read_only_folder_is_refused_before_the_fit(result, tmp_path, capsys, read_only):
+    import time
+
+    session, _, _ = result
+    out = tmp_path / "cal"
+    out.mkdir()
+    read_only(out)
+    t0 = time.process_time()
+    assert main(["calibrate", str(session), "--out", str(out), "--quiet"]) == 2
+    assert time.process_time() - t0 < 2.0  # before the fit (~10 s of CPU), not after it
+    _one_line_error(capsys, "cannot write here")
+
+
+def test_reconstruct_into_a_read_only_parent_is_one_line_before_the_work(result, tmp_path, capsys, read_only):
+    session, _, _ = result
+    parent = tmp_path / "p"
+    parent.mkdir()
+    read_only(parent)
+    assert main(["reconstruct", str(session), "--out", str(parent / "out"), "--voxel-size", "4", "--quiet"]) == 2
+    _one_line_error(capsys, str(parent))
+
+
+@pytest.mark.parametrize("command", ["mesh", "calibrate"])
+def test_a_full_disk_on_any_command_is_one_line(result, tmp_path, capsys, monkeypatch, command):
+    """ENOSPC raised where the files are written (no real full disk here): one line naming the file, exit 2."""
+    import errno
+
+    import organlab.cli as cli
+    import organlab.surface._result as sr
+
+    session, folder, _ = result
+
+    def full(path, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    if command == "mesh":
+        work = _copy(folder, tmp_path / "r")
+        monkeypatch.setattr(sr, "write_stl", full)
+        argv = ["mesh", str(work), "--repair"]
+    else:
+        monkeypatch.setattr(cli, "check_figures", lambda s, c, out: full(Path(out) / "intrinsic_000.png"))
+        argv = ["calibrate", str(session), "--out", str(tmp_path / "cal"), "--quiet"]
+    assert main(argv) == 2
+    _one_line_error(capsys, "No space left on device", str(tmp_path))
+    if command == "calibrate":
+        assert not (tmp_path / "cal" / "calibration.json").exists()  # never a calibration.json without its figures
