@@ -28,6 +28,8 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .agreement import model_mask
 from .batch import batch, parse_values, sweep
@@ -38,7 +40,7 @@ from .engine import Reconstruction
 from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
 from .pipeline import reconstruct, summary_table, write_outputs
-from .preflight import atomic_output_dir, check_output_dir, lock_output_dir, parse_memory
+from .preflight import atomic_output_dir, check_output_dir, check_remesh_memory, lock_output_dir, parse_memory
 from .progress import NullProgress, ProgressBar
 from .scaffold import init_session
 from .session import load_session
@@ -370,6 +372,10 @@ def _mesh_locked(a):
     steps = a.repair or a.smooth or a.remesh is not None
     # no step named: all of them, remeshing at 1.5 voxels
     rec = Reconstruction.load(a.result, mesh=False)  # every file it reads checked: one line for a damaged one
+    if a.remesh is not None:  # a tiny edge length: the remeshed surface's memory, before pymeshlab tries
+        occ = np.pad(rec.occupancy, 1)
+        faces = sum(int(np.count_nonzero(np.diff(occ, axis=k))) for k in range(3))  # the voxels' staircase area
+        check_remesh_memory(faces * rec.grid.voxel_size ** 2, a.remesh)
     report, paths = mesh_result(
         a.result,
         volume=(rec.surface_volume(), rec.grid),

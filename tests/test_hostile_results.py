@@ -321,3 +321,21 @@ def test_a_full_disk_on_any_command_is_one_line(result, tmp_path, capsys, monkey
     _one_line_error(capsys, "No space left on device", str(tmp_path))
     if command == "calibrate":
         assert not (tmp_path / "cal" / "calibration.json").exists()  # never a calibration.json without its figures
+
+
+def test_mesh_with_a_tiny_remesh_edge_is_refused_before_remeshing(result, tmp_path, capsys):
+    """--remesh 0.001 on a 4 mm model: about 1e11 faces; pymeshlab would try (measured: 1.25 KB per face)."""
+    import time
+
+    _, folder, rec = result
+    work = _copy(folder, tmp_path / "r")
+    t0 = time.process_time()
+    assert main(["mesh", str(work), "--remesh", "0.001"]) == 2
+    assert time.process_time() - t0 < 5.0
+    _one_line_error(capsys, "--remesh 0.001", "million faces", "give --remesh")
+    from organlab.preflight import check_remesh_memory
+
+    # the bound itself: the measured ball (4890 mm^2 at 0.25 mm: 172 722 faces, 206 MB) fits in 1 GiB, not in 100 MB
+    assert check_remesh_memory(4890.0, 0.25, max_memory=1 << 30) == pytest.approx(180_702 * 1300, rel=0.01)
+    with pytest.raises(OrganlabError, match="give --remesh 0.3"):
+        check_remesh_memory(4890.0, 0.25, max_memory=150 << 20)
