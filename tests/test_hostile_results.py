@@ -339,3 +339,14 @@ def test_mesh_with_a_tiny_remesh_edge_is_refused_before_remeshing(result, tmp_pa
     assert check_remesh_memory(4890.0, 0.25, max_memory=1 << 30) == pytest.approx(180_702 * 1300, rel=0.01)
     with pytest.raises(OrganlabError, match="give --remesh 0.3"):
         check_remesh_memory(4890.0, 0.25, max_memory=150 << 20)
+
+
+@pytest.mark.parametrize("text, needle", [
+    ('{"camera": ' + "[" * 5000 + "]" * 5000 + "}", "nested 5001 deep"),  # was a RecursionError traceback
+    ('{"camera": {"K": [[NaN, 0, 1], [0, 1, 1], [0, 0, 1]]}}', "not JSON"),
+    ('["camera"]', "has no usable cameras"),
+])
+def test_export_cameras_from_a_damaged_report_is_one_line(tmp_path, capsys, text, needle):
+    (tmp_path / "report.json").write_text(text)
+    assert main(["export-cameras", str(tmp_path), "--format", "colmap"]) == 2
+    _one_line_error(capsys, "report.json", needle)
