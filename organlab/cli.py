@@ -28,6 +28,8 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .agreement import model_mask
 from .batch import batch, parse_values, sweep
@@ -35,17 +37,18 @@ from .calibration import calibrate, export_cameras
 from .capture import run_capture
 from .cliparser import OneLineParser as _Parser
 from .coloring import carved_depth_picture
+from .engine import Reconstruction
 from .errors import OrganlabError, SettingsError
 from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
 from .pipeline import reconstruct, summary_table, write_outputs
-from .preflight import atomic_output_dir, check_output_dir, lock_output_dir, parse_memory
+from .preflight import atomic_output_dir, check_output_dir, check_remesh_memory, lock_output_dir, parse_memory
 from .progress import NullProgress, ProgressBar
 from .scaffold import init_session
 from .session import load_session
 from .surface import mesh_result
 from .synthetic import SimRig, main as synth_main
 from .validate import printable
-from .viewer import CaptureViewer, SessionViewer
+from .viewer import CaptureViewer, SessionViewer, is_loopback
 
 #: Settings (organlab.engine.Settings) whose flag is not --NAME
 _FLAGS = {"finish": "--raw-surface", "measure": "--measure"}
@@ -98,13 +101,16 @@ def _check_listen(host, port, option="--port"):
 
 
 def _loopback(host):
-    import ipaddress
-    import socket
+    return is_loopback(host)
 
-    try:
-        return all(ipaddress.ip_address(info[4][0]).is_loopback for info in socket.getaddrinfo(host, 0))
-    except (OSError, ValueError, UnicodeError):
-        return False
+
+def _warn_host(host):
+    """The warning of a viewer bound to an address other machines reach (it then needs its token)."""
+    if not _loopback(host):
+        print(f"organlab: warning: --host {printable(host)} is not this machine only: anyone who can reach it and "
+              "has the link with its token gets the session's photos and can start reconstructions; requests "
+              "without the token are refused; use 127.0.0.1 (and an SSH tunnel) unless the network is trusted",
+              file=sys.stderr)
 
 
 def _start_server(start, what):
@@ -311,6 +317,8 @@ def _capture_parser(sub):
                    "its camera, the hull carved as the table turns; the viewer stays open after the capture (Ctrl-C stops)")
     k.add_argument("--port", type=_port, default=None, help="with --view: TCP port on 127.0.0.1 (default 8080, the next "
                    "free one if taken; a port given and taken is refused)")
+    k.add_argument("--host", default="127.0.0.1", help="with --view: interface to bind (default 127.0.0.1: this "
+                   "machine only; any other needs the token printed in the URL)")
     k.add_argument("--view-voxel-size", type=_positive_float, default=2.0, metavar="MM",
                    help="with --view: voxel edge of the live hull in mm (default 2)")
 
@@ -331,10 +339,7 @@ def _view(a):
     import time
 
     port = _check_listen(a.host, a.port)
-    if not _loopback(a.host):
-        print(f"organlab: warning: --host {printable(a.host)} is not this machine only: anyone who can reach it gets "
-              "the session's photos and can start reconstructions, with no access control; use 127.0.0.1 "
-              "(and an SSH tunnel) unless the network is trusted", file=sys.stderr)
+    _warn_host(a.host)
     # the session and --result are checked before the server starts; then the URL, then each start-up step
     app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host,
                                               port=port, say=lambda line: print(line, flush=True)), "organlab view")
@@ -364,6 +369,8 @@ def _mesh_parser(sub):
 
 
 def _mesh(a):
+    if a.result.is_dir():  # a read-only result folder: one line before the work
+        _check_writable(a.result / "surface" if (a.result / "surface").is_dir() else a.result)
     with lock_output_dir(a.result, required=False):  # not while a reconstruct replaces the same folder
         return _mesh_locked(a)
 
@@ -371,8 +378,14 @@ def _mesh(a):
 def _mesh_locked(a):
     steps = a.repair or a.smooth or a.remesh is not None
     # no step named: all of them, remeshing at 1.5 voxels
+    rec = Reconstruction.load(a.result, mesh=False)  # every file it reads checked: one line for a damaged one
+    if a.remesh is not None:  # a tiny edge length: the remeshed surface's memory, before pymeshlab tries
+        occ = np.pad(rec.occupancy, 1)
+        faces = sum(int(np.count_nonzero(np.diff(occ, axis=k))) for k in range(3))  # the voxels' staircase area
+        check_remesh_memory(faces * rec.grid.voxel_size ** 2, a.remesh)
     report, paths = mesh_result(
         a.result,
+        volume=(rec.surface_volume(), rec.grid),
         repair=a.repair or not steps,
         smooth=a.smooth or not steps,
         remesh=a.remesh if steps else "auto",
@@ -477,6 +490,17 @@ def _pictures(rec, folder, voxel_size):
     return out
 
 
+def _check_writable(folder):
+    """Refuse, in one line, a folder that cannot take a file (made if missing)."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError as e:
+        raise OrganlabError(f"{folder}: cannot write here ({e.strerror or e}); choose a writable folder") from None
+
+
 def _calibrate(a):
     session = load_session(a.session)
     out = session.root if a.in_place else a.out
@@ -484,12 +508,15 @@ def _calibrate(a):
         raise OrganlabError(f"{out}: exists and is not a folder; give --out a folder")
     if not a.in_place and (out / "calibration.json").exists() and not a.force:
         raise OrganlabError(f"{out / 'calibration.json'}: already exists; give --force to replace it, or another --out")
+    _check_writable(out)  # before the fit, not after it
     bar = _bars(a.quiet)("calibration")
     cal = calibrate(session, progress=bar)
     bar.close()
     out.mkdir(parents=True, exist_ok=True)
-    path = cal.save(out / "calibration.json")
+    # the figures first, calibration.json last (atomically): a run killed before it ends leaves no calibration.json,
+    # so the same command runs again (one killed after it finished left a complete result)
     figs = check_figures(session, cal, a.figures or out / "calibration_check")
+    path = cal.save(out / "calibration.json")
     print(f"organlab calibrate: {session.name} -> {path}")
     for line in cal.summary():
         print(f"  {line}")
@@ -542,8 +569,10 @@ def _capture_viewer(a):
     if a.no_board:
         raise OrganlabError("--view needs the board images on the table (the views' camera poses come from them); "
                             "drop --no-board or --view")
-    port = _check_listen("127.0.0.1", a.port)
-    viewer = _start_server(lambda: CaptureViewer(a.out, voxel_size=a.view_voxel_size, port=port), "organlab capture --view")
+    port = _check_listen(a.host, a.port)
+    _warn_host(a.host)
+    viewer = _start_server(lambda: CaptureViewer(a.out, voxel_size=a.view_voxel_size, host=a.host, port=port),
+                           "organlab capture --view")
     print(f"organlab capture: live view at {viewer.url}  (the hull appears with the first view)")
     return viewer
 
@@ -700,6 +729,15 @@ def main(argv=None):
         return handler(args)
     except OrganlabError as e:  # one line: text from files (names, paths) with its control characters escaped
         print(f"organlab: error: {printable(e)}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a full disk, a read-only folder, a device gone, on any path: one line naming the file
+        where = f" ({printable(e.filename)})" if e.filename else ""
+        print(f"organlab: error: {printable(e.strerror or e)}{where}; free some space or use a writable folder, "
+              "and run the command again", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("organlab: error: out of memory; give --max-memory, a larger --voxel-size or fewer views, or free "
+              "memory", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("organlab: interrupted", file=sys.stderr)

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__, surface
+from . import __version__, surface, validate
 from .checks import model_warnings, roi_faces_touched
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
@@ -46,12 +46,12 @@ from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_fi
 from .coloring import PIPELINE_OPTIONS, color_voxels, photo_carve, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
-from .preflight import atomic_output_dir, check_grid_memory, check_image_memory
+from .preflight import atomic_output_dir, available_memory, check_grid_memory, check_image_memory
 from .poses import MODES as POSE_MODES, refine_poses
 from .progress import NullProgress
 from .session import Session, load_session, write_json
 from .silhouette import Silhouette, SilhouetteModel, silhouette
-from .surface import (color_vertices, finish_surface, is_aaa_session, load_voxels, measure, measure_aaa, mesh_from_field,
+from .surface import (color_vertices, finish_surface, is_aaa_session, measure, measure_aaa, mesh_from_field,
                       read_ply)
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
@@ -519,49 +519,138 @@ class Reconstruction:
         return paths
 
     @classmethod
-    def load(cls, folder: str | Path, *, session: Session | None = None) -> Reconstruction:
+    def load(cls, folder: str | Path, *, session: Session | None = None, mesh: bool = True) -> Reconstruction:
         """A result folder written by :meth:`save` (``organlab reconstruct --out``) read back.
 
         The voxels, field and colours from ``voxels.npz``, the mesh from
         ``mesh.ply``, the report from ``report.json`` (its settings as
         :attr:`settings`).  Cameras and silhouettes are not stored: empty.
+        Every file is read through :mod:`organlab.validate`: ``voxels.npz``
+        without pickles, its decompressed size checked against the memory
+        available before decoding, every array typed, shaped and finite;
+        ``report.json`` strict JSON with the keys read here typed; the mesh
+        checked by :func:`organlab.surface.read_ply`.  With ``mesh=False``
+        ``mesh.ply`` is neither needed nor read (:attr:`mesh` None): ``organlab
+        mesh`` makes its surface from the voxels.
 
         Raises
         ------
         OrganlabError
-            One line naming the missing or unreadable file.
+            One line naming the missing, unreadable or malformed file (and the
+            array or key).
+
+        Examples
+        --------
+        >>> import tempfile
+        >>> from organlab.engine import Reconstruction, Settings, run
+        >>> out = tempfile.mkdtemp() + "/out"
+        >>> _ = run("sample_sessions/aaa_phantom", Settings(voxel_size=4.0, finish=False)).save(out)
+        >>> rec = Reconstruction.load(out)
+        >>> rec.grid.voxel_size, rec.mesh.is_watertight
+        (4.0, True)
         """
         folder = Path(folder)
+        fix = "rewrite it with 'organlab reconstruct'"
+        if not folder.is_dir():
+            raise OrganlabError(f"{folder}: {'is a file, not' if folder.exists() else 'no such'} result folder; "
+                                f"write one with 'organlab reconstruct SESSION --out {folder}'")
         vox, ply, rep = folder / "voxels.npz", folder / "mesh.ply", folder / "report.json"
-        for p in (vox, ply):
+        for p in (vox, ply) if mesh else (vox,):
             if not p.is_file():
                 raise OrganlabError(f"{p}: missing; write the folder with 'organlab reconstruct SESSION --out {folder}'")
-        try:
-            with open(vox, "rb") as f, np.load(f, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except Exception as e:  # noqa: BLE001 -- a damaged file: one line naming it
-            raise OrganlabError(f"{vox}: cannot be read ({e}); rewrite it with 'organlab reconstruct'") from None
-        try:
-            occ = arrays["occupancy"].astype(bool)
-            grid = VoxelGrid(tuple(float(v) for v in arrays["origin_mm"]), float(arrays["voxel_size_mm"]), occ.shape)
-        except KeyError as e:
-            raise OrganlabError(f"{vox}: no {e.args[0]!r} array; rewrite it with 'organlab reconstruct'") from None
+        arrays = validate.read_npz(vox, fix=fix, max_bytes=available_memory())
+        occ, grid = _result_grid(arrays, vox, fix)
         field = None
-        if "field_block" in arrays:
+        if "field_block" in arrays or "field_states" in arrays:
             field = BandField.from_arrays(arrays, grid, prefix="field_", source=str(vox))
         elif "field" in arrays:
             field = arrays["field"]
-        try:
-            report = json.loads(rep.read_text()) if rep.is_file() else {}
-        except (OSError, ValueError) as e:
-            raise OrganlabError(f"{rep}: cannot be read ({e}); rewrite it with 'organlab reconstruct'") from None
+            if field.shape != occ.shape or field.dtype.kind != "f" or not np.all(np.isfinite(field)):
+                raise OrganlabError(f"{vox}: field: {field.dtype} {field.shape}, expected finite floats of the "
+                                    f"occupancy's shape {occ.shape}; {fix}")
+        colors = arrays.get("colors")
+        if colors is not None and (colors.dtype != np.uint8 or colors.shape != (*occ.shape, 3)):
+            raise OrganlabError(f"{vox}: colors: {colors.dtype} {colors.shape}, expected uint8 {(*occ.shape, 3)}; {fix}")
+        report = _read_report(rep, fix) if rep.is_file() else {}
+        surf = read_ply(ply) if mesh else None
         lo, hi = grid.bounds
         settings = Settings(voxel_size=grid.voxel_size, method=report.get("method", "hull"),
                             hull=report.get("hull", "subvoxel"), roi=(tuple(lo), tuple(hi)))
         coloring = report.get("coloring") or {}
-        return cls(session, grid, occ, read_ply(ply), [], [], report, field, arrays.get("colors"), None,
+        return cls(session, grid, occ, surf, [], [], report, field, colors, None,
                    settings=settings, agreement=AgreementFigures.from_report(report),
                    color_threshold=coloring.get("threshold"), aaa_error=report.get("aaa_error"))
+
+    def surface_volume(self) -> np.ndarray:
+        """The volume whose 0.5 level is the surface, ``grid.shape`` float32: the sub-voxel field when
+        there is one and no colouring carved the occupancy, else the occupancy as 0/1 (what
+        ``organlab mesh`` meshes)."""
+        if self.field is not None and self.colors is None:
+            return np.asarray(self.field.dense() if isinstance(self.field, BandField) else self.field, dtype=np.float32)
+        return np.asarray(self.occupancy, dtype=np.float32)
+
+
+def _result_grid(arrays, path, fix):
+    """The occupancy and grid of a ``voxels.npz``'s arrays, checked."""
+    for key in ("occupancy", "origin_mm", "voxel_size_mm"):
+        if key not in arrays:
+            raise OrganlabError(f"{path}: no {key!r} array; {fix}")
+    occ = arrays["occupancy"]
+    if occ.ndim != 3 or occ.dtype.kind not in "bui" or 0 in occ.shape:
+        raise OrganlabError(f"{path}: occupancy: {occ.dtype} {occ.shape}, expected (nx, ny, nz) booleans; {fix}")
+    if occ.dtype != bool and occ.size and (occ.min() < 0 or occ.max() > 1):
+        raise OrganlabError(f"{path}: occupancy: values other than 0 and 1; {fix}")
+    origin = validate.array(arrays["origin_mm"], (3,), "origin_mm", where=str(path), lo=-1e6, hi=1e6)
+    vs = arrays["voxel_size_mm"]
+    vs = validate.number(vs[()] if vs.shape == () else None, "voxel_size_mm", where=str(path), lo=1e-4, hi=1e4)
+    return occ.astype(bool), VoxelGrid(tuple(float(v) for v in origin), vs, occ.shape)
+
+
+def _read_report(path, fix):
+    """``report.json`` read strictly, the keys :meth:`Reconstruction.load` and the faces use typed."""
+    report = validate.read_json(path, fix=fix)
+    where = str(path)
+
+    def bad(key, why):
+        return OrganlabError(f"{path}: {key}: {why}; {fix}")
+
+    if not isinstance(report, dict):
+        raise bad("(top level)", "must be an object")
+    if report.get("method", "hull") not in METHODS:
+        raise bad("method", f"must be one of {', '.join(METHODS)}, got {validate.printable(report.get('method'))!r}")
+    if report.get("hull", "subvoxel") not in HULL_METHODS:
+        raise bad("hull", f"must be one of {', '.join(HULL_METHODS)}, got {validate.printable(report.get('hull'))!r}")
+    for key in ("session", "aaa_error"):
+        if report.get(key) is not None:
+            validate.string(report[key], key, where=where)
+    for key in ("coloring", "agreement", "calibration", "grid"):
+        if report.get(key) is not None and not isinstance(report[key], dict):
+            raise bad(key, "must be an object")
+    validate.number((report.get("coloring") or {}).get("threshold"), "coloring.threshold", where=where, lo=0,
+                    required=False)
+    if (report.get("agreement") or {}).get("mean_iou") is not None:
+        validate.number(report["agreement"]["mean_iou"], "agreement.mean_iou", where=where, lo=0, hi=1)
+    if not isinstance(report.get("warnings", []), list) or not all(isinstance(w, str) for w in report.get("warnings", [])):
+        raise bad("warnings", "must be a list of texts")
+    views = report.get("views", [])
+    if not isinstance(views, list) or not all(isinstance(v, dict) for v in views):
+        raise bad("views", "must be a list of objects")
+    agreed = [v for v in views if "agreement" in v]
+    for i, v in enumerate(views):
+        key = f"views[{i}]"
+        validate.string(v.get("image"), f"{key}.image", where=where)
+        validate.number(v.get("silhouette_threshold"), f"{key}.silhouette_threshold", where=where, required=False)
+        if "agreement" in v:
+            a = v["agreement"]
+            if not isinstance(a, dict):
+                raise bad(f"{key}.agreement", "must be an object")
+            validate.number(a.get("iou"), f"{key}.agreement.iou", where=where, lo=0, hi=1)
+            validate.number(a.get("disagreement"), f"{key}.agreement.disagreement", where=where, lo=0, hi=1)
+            for k in ("disagreement_width_px", "unexplained_silhouette_px"):
+                validate.number(a.get(k), f"{key}.agreement.{k}", where=where, lo=0, required=False)
+    if agreed and len(agreed) != len(views):
+        raise bad("views", "some views have an agreement entry and some do not")
+    return report
 
 
 # ---------------------------------------------------------------- the engine
@@ -1112,7 +1201,7 @@ class Engine:
             rec.agreement = rec.agreement.subset(self.views)
         if "aaa" in rec.report or self.is_aaa:
             try:
-                rec.aaa = measure_aaa(*load_voxels(folder))
+                rec.aaa = measure_aaa(rec.surface_volume(), rec.grid)
             except OrganlabError as e:
                 rec.aaa_error = str(e)
         return rec

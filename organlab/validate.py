@@ -7,6 +7,8 @@ subclass), never in a traceback, a hang or a silently wrong number:
 
 - :func:`read_json`: bounded size and nesting depth (checked before parsing: Python's parser
   recurses), strict JSON (``NaN``/``Infinity`` refused), UTF-8.
+- :func:`read_npz`: an ``.npz`` of plain arrays (never pickles), its decompressed size bounded
+  from the zip's directory before anything is decompressed.
 - :func:`number`, :func:`integer`, :func:`array`, :func:`string`: types, finiteness, ranges.
 - :func:`inside`: a path a file names, resolved inside its folder (symlinks followed) or refused.
 - :func:`printable`: text from a file, control characters escaped, before it reaches a terminal.
@@ -17,14 +19,16 @@ from __future__ import annotations
 import json
 import math
 import re
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from .errors import OrganlabError
 
-__all__ = ["MAX_DEPTH", "MAX_JSON_BYTES", "read_json", "json_depth", "number", "integer", "array", "string",
-           "inside", "printable"]
+__all__ = ["MAX_DEPTH", "MAX_JSON_BYTES", "read_json", "read_npz", "json_depth", "number", "integer", "array",
+           "string", "inside", "printable"]
 
 #: Deepest nesting accepted in a JSON file organlab reads.  Its own files nest at most 5 deep
 #: (calibration.json: turntable.images.NAME.corners_px[i][j]); Python's parser fails with a
@@ -104,6 +108,86 @@ def read_json(path, *, error=OrganlabError, fix="fix or regenerate it", max_dept
         raise error(f"{path}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}; {fix}") from None
     except (ValueError, RecursionError) as e:
         raise error(f"{path}: invalid JSON: {e}; {fix}") from None
+
+
+def read_npz(path, *, error=OrganlabError, fix="fix or regenerate it", max_bytes=None, kinds="biuf"):
+    """The arrays of an ``.npz`` file, read without pickles and with its memory bounded first.
+
+    Parameters
+    ----------
+    path : str or Path
+    error : type
+        The exception raised (an :class:`OrganlabError` subclass).
+    fix : str
+        What the user should do, ending the message.
+    max_bytes : int, optional
+        Largest total decompressed size, bytes, checked from the zip's directory before any
+        array is decompressed (a small file may hold a huge array); default no bound.
+    kinds : str
+        The numpy dtype kinds accepted (``'b'`` bool, ``'i'``/``'u'`` integers, ``'f'`` floats).
+
+    Returns
+    -------
+    dict of str -> ndarray
+
+    Raises
+    ------
+    error
+        Missing, unreadable, not a zip of ``.npy`` arrays, an array's header or data damaged,
+        an object or other dtype, more than ``max_bytes``.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.npz"
+    >>> np.savez(p, a=np.arange(3))
+    >>> read_npz(p)["a"]
+    array([0, 1, 2])
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{path}: {'is a folder, not a file' if path.is_dir() else 'no such file'}; {fix}")
+    try:
+        with open(path, "rb") as f, zipfile.ZipFile(f) as zf:
+            infos = zf.infolist()
+            total = sum(i.file_size for i in infos)
+            if max_bytes is not None and total > max_bytes:
+                raise error(f"{path}: its arrays take {_size(total)} decompressed, more than the "
+                            f"{_size(max_bytes)} of memory available; {fix} (or free memory)")
+            out = {}
+            for info in infos:
+                name = info.filename
+                if not name.endswith(".npy") or name.count("/") or len(name) > 260:
+                    raise error(f"{path}: holds {printable(name[:60])!r}, not an array organlab writes; {fix}")
+                with zf.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+                    if version not in readers:
+                        raise error(f"{path}: {name[:-4]}: .npy format {version}, not one organlab writes; {fix}")
+                    try:  # numpy parses the header with ast and tokenize: any of their errors
+                        shape, fortran, dtype = readers[version](member, max_header_size=10000)
+                    except Exception as e:  # noqa: BLE001 -- a damaged header is one line naming the array
+                        raise error(f"{path}: {name[:-4]}: damaged array header ({type(e).__name__}); {fix}") from None
+                    if dtype.hasobject or dtype.kind not in kinds or dtype.fields is not None:
+                        raise error(f"{path}: {name[:-4]}: dtype {dtype}, not plain numbers; {fix}")
+                    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize if shape else dtype.itemsize
+                    if nbytes != info.file_size - member.tell():
+                        raise error(f"{path}: {name[:-4]}: its header says {shape} {dtype}, the data does not fit; {fix}")
+                    data = member.read(nbytes)
+                if len(data) != nbytes:
+                    raise error(f"{path}: {name[:-4]}: cut short; {fix}")
+                a = np.frombuffer(data, dtype=dtype)
+                out[name[:-4]] = (a.reshape(shape[::-1]).T if fortran else a.reshape(shape)).copy()
+            return out
+    except OrganlabError:
+        raise
+    except (OSError, ValueError, TypeError, IndexError, EOFError, OverflowError, MemoryError, SyntaxError,
+            zipfile.BadZipFile, zipfile.LargeZipFile, NotImplementedError, zlib.error) as e:
+        raise error(f"{path}: unreadable ({type(e).__name__}: {printable(str(e))[:120]}); {fix}") from None
+
+
+def _size(n):
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
 
 
 def _short(v):

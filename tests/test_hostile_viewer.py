@@ -2,6 +2,7 @@
 limits) and runs the grid memory pre-flight before each re-run.  A crafted message set a 0.05 mm voxel
 or a 3 m roi and kept the worker busy for 30-45 s at 2.8 GB."""
 
+import numpy as np
 import pytest
 from _hostile import small_calibrated
 
@@ -51,3 +52,23 @@ def test_crafted_roi_and_choices_are_bounded_and_preflighted(viewer, calls):
     c.roi_size.value = (1000.0, 1000.0, 1000.0)
     c._settings_changed(roi=c.roi())
     assert calls == [] and "not run" in c.status.content and "needs about" in c.status.content
+
+
+@pytest.mark.slow
+def test_crafted_roi_gizmo_position_is_bounded_on_the_server(viewer, calls):
+    """The gizmo's translation limits are the browser's; a crafted message may send any position."""
+    c = viewer.controls
+    c.roi_edit.value = True
+    try:
+        gizmo = c._roi_gizmo
+        limit = 5 * float(np.linalg.norm(c._roi_size()))
+        before = np.array(c._roi_centre, float)
+        for crafted, want in [((float("nan"), 0.0, 0.0), before), ((1e308, -1e308, 0.0), (limit, -limit, 0.0))]:
+            gizmo._impl.wxyz, gizmo._impl.position = np.array([1.0, 0, 0, 0]), np.array(crafted)  # as the message sets it
+            for cb in gizmo._impl_aux.update_cb:  # what viser runs on a client's update
+                cb(None)
+            assert np.allclose(c._roi_centre, want), (crafted, c._roi_centre)
+            lo, hi = c.roi()
+            assert np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))
+    finally:
+        c.roi_edit.value = False

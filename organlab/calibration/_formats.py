@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _files as calibio
+from .. import validate
 from ..camera import Camera, nearest_rotation
 from ..errors import CalibrationError
 
@@ -221,8 +222,8 @@ def export_cameras(result: str | Path, out: str | Path | None = None, *, format:
     rj = result / "report.json"
     if not rj.is_file():
         raise CalibrationError(f"{rj}: missing; give a folder written by 'organlab reconstruct'")
+    report = validate.read_json(rj, error=CalibrationError, fix="run 'organlab reconstruct' again")  # strict, bounded
     try:
-        report = json.loads(rj.read_text(encoding="utf-8"))
         cam = report["camera"]
         base = Camera(cam["K"], cam["dist"], image_size=tuple(cam["image_size"]))
         cams = [base.with_pose(v["R"], v["t"]) for v in report["views"]]

@@ -300,7 +300,7 @@ class Calibration:
 def _remove_stale_temporaries(path):
     """Remove ``.NAME.tmpPID`` files beside ``path`` left by a process that no longer runs (a kill -9)."""
     for p in path.parent.glob(f".{path.name}.tmp*"):
-        pid = p.name[len(path.name) + 4:]
+        pid = p.name[len(f".{path.name}.tmp"):]
         if not pid.isdigit() or int(pid) == os.getpid():
             continue
         try:

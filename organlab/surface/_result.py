@@ -117,7 +117,8 @@ def load_voxels(result_dir: str | Path) -> tuple[np.ndarray, VoxelGrid]:
 
 
 def mesh_result(result_dir: str | Path, *, repair: bool = True, smooth: bool = True, remesh: Literal["auto"] | float | None = "auto",
-                tetra: bool = False, measure: bool = False, picture: bool = False) -> tuple[dict, dict[str, Path]]:
+                tetra: bool = False, measure: bool = False, picture: bool = False,
+                volume: tuple[np.ndarray, VoxelGrid] | None = None) -> tuple[dict, dict[str, Path]]:
     """Finish the surface of a reconstruction folder and write it (``DIR/surface/``).
 
     Parameters
@@ -131,13 +132,20 @@ def mesh_result(result_dir: str | Path, *, repair: bool = True, smooth: bool = T
     measure : bool
         AAA measurements to ``aaa.json`` (and ``aaa_measures.png`` with ``picture``).
     picture : bool
+    volume : ((nx, ny, nz) float32, VoxelGrid), optional
+        The volume to mesh (level 0.5) and its grid, as read by the caller
+        (``organlab mesh``: :meth:`organlab.engine.Reconstruction.surface_volume`);
+        default :func:`load_voxels` of ``result_dir``.
 
     Returns
     -------
     report : dict
     paths : dict of str -> Path
     """
-    vol, grid = load_voxels(result_dir)
+    vol, grid = load_voxels(result_dir) if volume is None else volume
+    if not np.any(vol >= 0.5):
+        raise OrganlabError(f"{Path(result_dir) / 'voxels.npz'}: the model is empty (no voxel kept), there is no "
+                            "surface to make; check the reconstruction's warnings and reconstruct again")
     out = Path(result_dir) / "surface"
     out.mkdir(parents=True, exist_ok=True)
     raw = mesh_from_volume(vol, grid, level=0.5)

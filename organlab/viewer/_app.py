@@ -12,7 +12,6 @@ running one.  No stage runs here: this is a face.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,8 @@ import numpy as np
 from ..agreement import model_mask
 from ..calibration import needs_calibration
 from ..engine import AgreementFigures, Engine, Reconstruction, Settings
-from ..errors import SessionError
+from .. import validate
+from ..errors import OrganlabError, SessionError
 from ..session import Session, load_session
 from ._frustums import PoseFrustums
 from ._gui import Controls
@@ -52,18 +52,23 @@ def check_result_folder(folder: str | Path, session: Session) -> Path:
         if not (folder / name).is_file():
             raise SessionError(f"{folder / name}: missing, so {folder} is not a result folder; {fix}")
     rep = folder / "report.json"
-    if rep.is_file():
-        try:
-            report = json.loads(rep.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as e:
-            raise SessionError(f"{rep}: cannot be read ({e}); {fix}") from None
-        images = [v.get("image") for v in report.get("views", []) if isinstance(v, dict)]
+    report = validate.read_json(rep, error=SessionError, fix=fix) if rep.is_file() else {}
+    if isinstance(report, dict):  # another session's result first: the likelier mistake than a damaged file
+        views = report.get("views") if isinstance(report.get("views"), list) else []
+        images = [v.get("image") for v in views if isinstance(v, dict)]
         mine = [session.relpath(v.image) for v in session.views]
         name = report.get("session")
         if (name is not None and name != session.name) or (images and images != mine):
             raise SessionError(
-                f"{folder}: made from session '{name}' ({len(images)} views), not from {session.root} "
-                f"('{session.name}', {len(mine)} views); view it with its own session, or {fix}")
+                f"{folder}: made from session '{validate.printable(name)}' ({len(images)} views), not from "
+                f"{session.root} ('{validate.printable(session.name)}', {len(mine)} views); view it with its own "
+                f"session, or {fix}")
+    try:  # every file read through its type, checked: one line for a damaged one, before the server starts
+        Reconstruction.load(folder, session=session)
+    except SessionError:
+        raise
+    except OrganlabError as e:
+        raise SessionError(str(e)) from None
     return folder
 
 
@@ -163,7 +168,7 @@ class SessionViewer:
         Voxel size of the first reconstruction.
     views : sequence of int, optional
         Use only these views (e.g. every third one, for a quick look).
-    host, port : as :class:`LiveView`
+    host, port, token : as :class:`LiveView` (a non-loopback host requires a token)
     stream : bool
         Carve view by view at start, updating the scene after each view.
 
@@ -178,7 +183,7 @@ class SessionViewer:
 
     def __init__(self, session: Session | str | Path, *, result: str | Path | None = None, voxel_size: float = 1.0,
                  views: Any = None, host: str = "127.0.0.1", port: int = 8080, stream: bool = True,
-                 verbose: bool = False, say: Any = None):
+                 verbose: bool = False, say: Any = None, token: str | None = None):
         say = say or (lambda _line: None)
         self.session = session if isinstance(session, Session) else load_session(session)
         s = self.session
@@ -194,7 +199,7 @@ class SessionViewer:
         self.errors = []
         self._runs = 0  # re-runs shown; the one running is "run {self._runs + 1}"
         # the server first: its address is printed (say) and the page shows the start-up steps
-        self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}")
+        self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}", token=token)
         say(f"organlab view: {s.name} at {self.url}  (Ctrl-C stops)")
         notice = self.live.server.gui.add_markdown("*starting*")
 

@@ -41,7 +41,7 @@ class CaptureViewer:
         Delta E for a session keyed against a backdrop.
     tolerance : int
         Views allowed to disagree before a voxel is carved.
-    host, port, verbose : as :class:`LiveView`
+    host, port, verbose, token : as :class:`LiveView`
     say : callable(str), optional
         Where the note is printed when the viewer switches off (default: stderr).
 
@@ -58,7 +58,7 @@ class CaptureViewer:
 
     def __init__(self, session_dir: str | Path, *, voxel_size: float = 2.0, threshold: float | None = None,
                  tolerance: int = 0, host: str = "127.0.0.1", port: int = 8080, verbose: bool = False,
-                 say: Callable[[str], None] | None = None):
+                 say: Callable[[str], None] | None = None, token: str | None = None):
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be > 0 mm, got {voxel_size}")
         self.root = Path(session_dir)
@@ -66,7 +66,8 @@ class CaptureViewer:
         self.threshold = threshold
         self.tolerance = int(tolerance)
         self.say = say if say is not None else (lambda s: print(s, file=sys.stderr))
-        self.live = LiveView(host=host, port=port, verbose=verbose, label=f"organlab capture: {self.root.name}")
+        self.live = LiveView(host=host, port=port, verbose=verbose, label=f"organlab capture: {self.root.name}",
+                             token=token)
         self.camera0 = None
         self.hull = None
         self.error = None

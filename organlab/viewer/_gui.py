@@ -408,9 +408,13 @@ class Controls:
         )
         self._update_roi_box()
 
+        limit = 5 * size  # the gizmo's translation limits, enforced here too: a client may send any position
+
         @self._roi_gizmo.on_update
         def _(_e):
-            self._roi_centre = np.asarray(self._roi_gizmo.position, float)
+            pos = np.asarray(self._roi_gizmo.position, float)
+            if pos.shape == (3,) and np.all(np.isfinite(pos)):
+                self._roi_centre = np.clip(pos, -limit, limit)
             self._update_roi_info()
 
     def _update_roi_box(self):

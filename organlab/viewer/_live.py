@@ -16,6 +16,7 @@ import numpy as np
 from ..camera import Camera
 from ..engine import LiveHull
 from . import _scene
+from ._access import is_loopback, new_token, start_viser
 
 
 class LiveView:
@@ -32,11 +33,15 @@ class LiveView:
     tolerance : int
         Tolerance of that progressive carving.
     host : str
-        Interface to bind; ``'127.0.0.1'`` (default) keeps the viewer local.
+        Interface to bind; ``'127.0.0.1'`` (default) keeps the viewer local.  Any other
+        address requires a token in the URL (:mod:`organlab.viewer._access`).
     port : int
         TCP port (0: any free port; viser tries the next ports when taken).
     label : str
         Title of the GUI panel.
+    token : str, optional
+        Every request must carry it (``?token=`` in the URL, then a cookie).  Default: a new
+        random token when ``host`` is not a loopback address, none on loopback.
 
     Attributes
     ----------
@@ -44,12 +49,16 @@ class LiveView:
     cameras, images, masks : lists, one entry per view added
     updates : int
         Number of voxel/mesh updates sent.
+    token : str or None
+        The token :attr:`url` carries (None: loopback, no token needed).
     """
 
-    def __init__(self, *, roi=None, grid=None, tolerance=0, host="127.0.0.1", port=8080, label="organlab", verbose=False):
-        import viser
-
-        self.server = viser.ViserServer(host=host, port=port, label=label, verbose=verbose)
+    def __init__(self, *, roi=None, grid=None, tolerance=0, host="127.0.0.1", port=8080, label="organlab", verbose=False,
+                 token=None):
+        if token is None and not is_loopback(host):
+            token = new_token()
+        self.token = token
+        self.server = start_viser(host=host, port=port, label=label, verbose=verbose, token=token)
         self.server.scene.set_up_direction("+z")
         self._lock = threading.RLock()
         self.cameras, self.images, self.masks = [], [], []
@@ -79,7 +88,9 @@ class LiveView:
     def url(self):
         host = self.server.get_host()
         host = "127.0.0.1" if host in ("0.0.0.0", "") else host
-        return f"http://{host}:{self.port}"
+        if ":" in host:  # an IPv6 address
+            host = f"[{host}]"
+        return f"http://{host}:{self.port}" + (f"/?token={self.token}" if self.token else "")
 
     def iframe(self, *, width="100%", height=520):
         """The viewer embedded in a notebook cell (``IPython.display.IFrame``)."""
