@@ -40,11 +40,12 @@ warm: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/organlab reconstruct sample_sessions/aaa_phantom --out demo_out --voxel-size 1 --picture
 
+# The suite on TEST_WORKERS processes (pytest-xdist; the machine's 2 cores by default), each test file whole on one
+# of them (--dist loadfile: a file's module fixtures are made once).  TEST_WORKERS=0 runs it in this process.
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	@# the JupyterLab browser test in a process of its own: after the other notebook tests in one process it timed
-	@# out waiting for the threshold picker (passes alone in 22 s; cause not found yet)
-	$(BIN)/python -m pytest -q -p no:cacheprovider tests/test_notebook_jupyterlab.py
-	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/test_notebook_jupyterlab.py
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_carving.py

@@ -31,24 +31,41 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .agreement import model_mask
-from .batch import batch, parse_values, sweep
-from .calibration import calibrate, export_cameras
-from .capture import run_capture
-from .cliparser import OneLineParser as _Parser
-from .coloring import carved_depth_picture
-from .engine import Reconstruction
+from .cliparser import OneLineParser as _Parser, later
 from .errors import OrganlabError, SettingsError
-from .figures import agreement_chart, agreement_overlay, check_figures, mesh_snapshot
-from .pipeline import reconstruct, summary_table, write_outputs
 from .preflight import atomic_output_dir, check_output_dir, check_remesh_memory, lock_output_dir, parse_memory
 from .progress import NullProgress, ProgressBar
-from .scaffold import init_session
 from .session import load_session
-from .surface import mesh_result
-from .synthetic import SimRig, main as synth_main
 from .validate import printable
-from .viewer import CaptureViewer, SessionViewer, is_loopback
+
+# The stages, the engine and the viewers: imported when a command first calls them, so that building the parser
+# (--help, --version, a mistyped flag) loads none of them (numba, OpenCV, viser: --help took 5.5 s with them at
+# the top).  Each line is the import it stands for (tests/test_architecture.py reads them as imports); a command
+# that needs another stage function adds one line here, never a top-level 'from .stage import' (test_cli_help.py
+# fails when --help loads a stage).
+model_mask = later("organlab.agreement", "model_mask")
+batch = later("organlab.batch", "batch")
+parse_values = later("organlab.batch", "parse_values")
+sweep = later("organlab.batch", "sweep")
+calibrate = later("organlab.calibration", "calibrate")
+export_cameras = later("organlab.calibration", "export_cameras")
+run_capture = later("organlab.capture", "run_capture")
+agreement_chart = later("organlab.figures", "agreement_chart")
+agreement_overlay = later("organlab.figures", "agreement_overlay")
+check_figures = later("organlab.figures", "check_figures")
+mesh_snapshot = later("organlab.figures", "mesh_snapshot")
+reconstruct = later("organlab.pipeline", "reconstruct")
+summary_table = later("organlab.pipeline", "summary_table")
+write_outputs = later("organlab.pipeline", "write_outputs")
+init_session = later("organlab.scaffold", "init_session")
+mesh_result = later("organlab.surface", "mesh_result")
+carved_depth_picture = later("organlab.coloring", "carved_depth_picture")
+Reconstruction = later("organlab.engine", "Reconstruction")
+SimRig = later("organlab.synthetic", "SimRig")
+synth_main = later("organlab.synthetic", "main")
+CaptureViewer = later("organlab.viewer", "CaptureViewer")
+SessionViewer = later("organlab.viewer", "SessionViewer")
+is_loopback = later("organlab.viewer", "is_loopback")
 
 #: Settings (organlab.engine.Settings) whose flag is not --NAME
 _FLAGS = {"finish": "--raw-surface", "measure": "--measure"}

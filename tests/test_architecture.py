@@ -5,6 +5,10 @@ The floors are defined here and in docs/architecture.md (the test checks that bo
 A *unit* is a top-level module (``organlab.camera``) or a top-level package (``organlab.carving``,
 with every module inside it).  A unit may import units of its own floor or of the floors below;
 the test-data generators may be imported only by the faces (and the tests).
+
+An import is a statement, or ``name = later("organlab.module", "name")`` (organlab.cliparser.later: the command
+line's stage functions, imported on their first call so that ``organlab --help`` loads no stage); both are held
+to every rule, and no module computes the name of a module it imports.
 """
 
 import ast
@@ -93,10 +97,39 @@ def _imports(module, path):
                         out.append((child.lineno, sub, None, in_function))
                     else:
                         out.append((child.lineno, target, a.name, in_function))
+            elif isinstance(child, ast.Call) and _callee(child) == "later":  # organlab.cliparser.later: a lazy import
+                args = [a.value for a in child.args if isinstance(a, ast.Constant) and isinstance(a.value, str)]
+                if len(args) == 2 == len(child.args) and not child.keywords:
+                    out.append((child.lineno, args[0], args[1], in_function))
             visit(child, inner)
 
     visit(tree, False)
     return out
+
+
+def _callee(call):
+    f = call.func
+    return f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+
+
+#: Where a module name may be computed: the package's own lazy names (``organlab.__getattr__``, the public face,
+#: outside the floors) and ``later`` itself.  Everywhere else an import is a statement or ``later`` with literals.
+DYNAMIC_OK = {"organlab", "organlab.cliparser"}
+
+
+def _dynamic_imports(path):
+    """Lines that import a module by a computed name (import_module, __import__, later without two literals)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    bad = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        name = _callee(node)
+        literal = len(node.args) == 2 and not node.keywords and all(
+            isinstance(a, ast.Constant) and isinstance(a.value, str) for a in node.args)
+        if name in ("import_module", "__import__") or (name == "later" and not literal):
+            bad.append(node.lineno)
+    return bad
 
 
 IMPORTS = {m: _imports(m, p) for m, p in MODULES.items()}
@@ -202,6 +235,25 @@ def test_no_function_local_import_of_organlab():
     assert not bad, "move these imports to the top of their module:\n" + "\n".join(bad)
 
 
+def test_no_import_by_a_computed_name():
+    """``later("organlab.x", "name")`` with literals, or an import statement: what the rules above can read."""
+    bad = [f"{_where(m, line)}" for m, p in MODULES.items() if m not in DYNAMIC_OK for line in _dynamic_imports(p)]
+    assert not bad, "import with a statement, or later('organlab.module', 'name') at the top:\n" + "\n".join(bad)
+
+
+def test_lazy_imports_name_what_exists():
+    """Each ``later`` names a module and a callable in it (a typo would fail only when its command runs)."""
+    import importlib
+
+    lazy = [(m, node.lineno, *(a.value for a in node.args)) for m, p in MODULES.items()
+            for node in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
+            if isinstance(node, ast.Call) and _callee(node) == "later" and m not in DYNAMIC_OK]
+    assert sum(m == "organlab.cli" for m, *_ in lazy) >= 10  # the command line's stage functions (--help's speed)
+    bad = [f"{_where(m, line)}: {target}.{name}" for m, line, target, name in lazy
+           if target not in MODULES or not callable(getattr(importlib.import_module(target), name, None))]
+    assert not bad, "later() of a name its module does not define:\n" + "\n".join(bad)
+
+
 def test_no_underscore_name_from_another_package():
     bad = []
     for m, imps in IMPORTS.items():
@@ -224,7 +276,7 @@ def test_docs_show_the_same_floors():
     assert doc == {**FLOORS, "test data": TEST_DATA}
 
 
-@pytest.mark.parametrize("rule", ["cycle", "climb", "local", "underscore"])
+@pytest.mark.parametrize("rule", ["cycle", "climb", "local", "underscore", "lazy climb", "lazy local", "computed"])
 def test_the_rules_catch_a_bad_module(rule, tmp_path, monkeypatch):
     """Each rule fails on a module written to break it (so the checks above can fail)."""
     src = {
@@ -232,6 +284,11 @@ def test_the_rules_catch_a_bad_module(rule, tmp_path, monkeypatch):
         "climb": ("camera", "from .pipeline import reconstruct\n", None, None),
         "local": ("camera", "def f():\n    from .grid import VoxelGrid\n", None, None),
         "underscore": ("camera", "from .carving._band import band_field\n", None, None),
+        "lazy climb": ("camera", "from .cliparser import later\nrun = later('organlab.pipeline', 'reconstruct')\n",
+                       None, None),
+        "lazy local": ("camera", "from .cliparser import later\ndef f():\n    return later('organlab.grid', 'VoxelGrid')\n",
+                       None, None),
+        "computed": ("camera", "import importlib\nrun = importlib.import_module('organlab.' + 'pipeline')\n", None, None),
     }[rule]
     fake = {}
     for name, code in ((src[0], src[1]), (src[2], src[3])):
@@ -246,7 +303,8 @@ def test_the_rules_catch_a_bad_module(rule, tmp_path, monkeypatch):
     monkeypatch.setitem(globals(), "IMPORTS", {m: _imports(m, p) for m, p in fake.items()})
     check = {"cycle": test_no_import_cycle_between_modules, "climb": test_imports_never_climb_a_floor,
              "local": test_no_function_local_import_of_organlab,
-             "underscore": test_no_underscore_name_from_another_package}[rule]
+             "underscore": test_no_underscore_name_from_another_package, "lazy climb": test_imports_never_climb_a_floor,
+             "lazy local": test_no_function_local_import_of_organlab, "computed": test_no_import_by_a_computed_name}[rule]
     with pytest.raises(AssertionError):
         check()
 

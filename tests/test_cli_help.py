@@ -66,3 +66,23 @@ def test_version_from_the_installed_command():
     out = subprocess.run([sys.executable, "-m", "organlab", "--version"], capture_output=True, text=True,
                          cwd=ROOT, check=True).stdout
     assert out.strip() == f"organlab {organlab.__version__}"
+
+
+#: What ``organlab --help`` may load: the package's light names and the ground floor the parser needs.
+_HELP_LOADS = {"organlab", "organlab.cli", "organlab.cliparser", "organlab.errors", "organlab.preflight",
+               "organlab.progress", "organlab.session", "organlab.validate", "organlab.camera", "organlab.grid"}
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], ["reconstruct", "--help"], ["view", "--help"],
+                                  ["sweep", "--help"], ["reconstruct", "--no-such-flag"]])
+def test_help_loads_no_stage(argv):
+    """issue 19: with every stage imported at the top, ``organlab --help`` took 5.5 s (numba, OpenCV, viser);
+    the parser must build from the ground floor alone (the stages load when a command calls them)."""
+    code = ("import sys\nfrom organlab.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            "print('LOADED', *sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('organlab', 'numba', 'cv2', 'scipy', 'skimage', 'pyvista', 'viser', 'dask', 'pymeshlab', 'pandas')), "
+            "file=sys.stderr)\n")
+    run = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=ROOT, check=True)
+    loaded = set(run.stderr.split("LOADED")[-1].split())
+    assert run.stdout or "error" in run.stderr  # it answered
+    assert loaded - _HELP_LOADS == set(), f"organlab {' '.join(argv)} imported {sorted(loaded - _HELP_LOADS)}"

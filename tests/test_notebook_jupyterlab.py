@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib.util
 import io
 import os
+import re
 import secrets
 import shutil
 import socket
@@ -99,6 +100,21 @@ def lab(tmp_path_factory):
         log.close()
 
 
+def _wait_for_kernel(lab, notebook, timeout=240):
+    """Until the server has a session for ``notebook`` (a path below the lab's root) whose kernel is idle."""
+    import json
+    import urllib.request
+
+    t0 = time.monotonic()
+    while True:
+        with urllib.request.urlopen(f"{lab['url']}/api/sessions?token={lab['token']}", timeout=10) as r:
+            sessions = json.load(r)
+        if any(s.get("path") == notebook and (s.get("kernel") or {}).get("execution_state") == "idle" for s in sessions):
+            return
+        assert time.monotonic() - t0 < timeout, f"no idle kernel for {notebook} after {timeout} s: {sessions}"
+        time.sleep(0.5)
+
+
 def _png(locator):
     from PIL import Image
 
@@ -116,6 +132,14 @@ def test_threshold_picker_in_jupyterlab(lab):
             page.set_default_timeout(120_000)
             page.goto(f"{lab['url']}/lab/tree/{NOTEBOOK}?token={lab['token']}")
             page.locator(".jp-Notebook .jp-Cell").first.wait_for()
+            # Run All before the page's session holds its kernel runs nothing: JupyterLab clears each cell it
+            # cannot send (hasNoKernel), may ask "Select Kernel", and the test then waited for a picker never
+            # drawn.  On a busy machine the kernel starts seconds after the page shows the notebook (the
+            # "ordering" failure: it ran after the other notebook tests on a loaded machine; alone under load
+            # 25 it failed the same way).  Wait for the server's session of this notebook and for the page to
+            # show its kernel idle (the status bar's "Python 3 (ipykernel) | Idle").
+            _wait_for_kernel(lab, NOTEBOOK)
+            page.locator(".jp-StatusBar-Widget").get_by_text(re.compile(r"\| Idle$")).first.wait_for()
             page.locator(".jp-Notebook-ExecutionIndicator[data-status='idle']").first.wait_for()
             # Run > Run All Cells, from the menu bar
             page.locator(".lm-MenuBar-itemLabel", has_text="Run").first.click()
