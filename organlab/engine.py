@@ -109,6 +109,8 @@ class Settings:
         view explains); 'auto': when the session has >= 8 views whose
         silhouettes it finds by background subtraction (not for a session
         keyed against a ``backdrop``: measured worse on the dino photos).
+        Default 'off': on the sample it changes 4 px and costs about 3 s CPU
+        at 1 mm; see docs/silhouettes.md for what it recovers elsewhere.
 
     Examples
     --------
@@ -131,7 +133,7 @@ class Settings:
     measure: bool | None = None
     roi: tuple | None = None
     refine_poses: str = "auto"  # 'auto' | 'on' | 'off' (organlab.poses.refine_poses)
-    joint_silhouettes: str = "auto"  # 'auto' | 'on' | 'off' (SilhouetteModel.joint: every view's hull as a prior)
+    joint_silhouettes: str = "off"  # 'auto' | 'on' | 'off' (SilhouetteModel.joint: every view's hull as a prior)
 
     def replace(self, **changes: Any) -> Settings:
         """A copy with some fields changed (validated)."""

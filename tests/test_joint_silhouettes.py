@@ -103,7 +103,8 @@ def test_engine_setting_and_report(tmp_path):
         Settings(joint_silhouettes="yes").validate()
     root = copy_sample(tmp_path / "s", calibration=True, views=3)  # 12 views: 'auto' runs the step
     eng = Engine(root)
-    rec = eng.run(Settings(voxel_size=4.0, finish=False, measure=False))
+    assert Settings().joint_silhouettes == "off"  # the default (docs/silhouettes.md says why)
+    rec = eng.run(Settings(voxel_size=4.0, finish=False, measure=False, joint_silhouettes="auto"))
     j = rec.report["joint_silhouettes"]
     assert j["mode"] == "auto" and j["ran"] and j["iterations"] >= 1
     rows = [v["silhouette_joint"] for v in rec.report["views"]]
