@@ -17,6 +17,7 @@ the same camera model as organlab (:class:`~organlab.camera.Camera`):
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -25,6 +26,7 @@ import numpy as np
 from ..validate import read_json
 from ..camera import Camera
 from ..errors import CalibrationError
+from ._storage import read_storage
 
 __all__ = [
     "read_bouguet",
@@ -222,59 +224,50 @@ def read_opencv(path: str | Path) -> tuple[Camera, dict]:
         When a key is missing or the distortion model is not the 5-coefficient
         one.
     """
-    import cv2
-
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"{path}: no such file; give an OpenCV calibration YAML/XML file")
-    try:
-        return _read_opencv(path, cv2)
-    except (cv2.error, SystemError, TypeError, ValueError, OverflowError) as e:  # OpenCV's parser on a damaged file
-        raise CalibrationError(f"{path}: cannot be parsed as an OpenCV calibration file "
-                               f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-
-
-def _read_opencv(path, cv2):
-    try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error:
-        raise CalibrationError(f"{path}: cannot be parsed as OpenCV YAML/XML") from None
-    try:
-        if not fs.isOpened():
-            raise CalibrationError(f"{path}: cannot be opened as OpenCV YAML/XML")
-        K = fs.getNode("camera_matrix").mat()
-        if K is None or K.shape != (3, 3):
-            raise CalibrationError(f"{path}: camera_matrix is missing or not 3x3")
-        d = fs.getNode("distortion_coefficients").mat()
-        d = np.zeros(5) if d is None else np.asarray(d, float).ravel()
-        if d.size > 5 and np.any(d[5:] != 0):
-            raise CalibrationError(
-                f"{path}: distortion_coefficients has non-zero terms beyond k3 (rational/thin-prism model); "
-                "only [k1, k2, p1, p2, k3] is supported"
-            )
-        dist = np.zeros(5)
-        dist[: min(5, d.size)] = d[:5]
-        w, h = fs.getNode("image_width"), fs.getNode("image_height")
-        if w.empty() or h.empty():
-            raise CalibrationError(f"{path}: image_width / image_height are missing")
-        if not (np.isfinite(w.real()) and np.isfinite(h.real())):
-            raise CalibrationError(f"{path}: image_width / image_height must be finite numbers")
-        size = (int(w.real()), int(h.real()))
-        extra = {}
-        node = fs.getNode("avg_reprojection_error")
-        if not node.empty():
-            extra["avg_reprojection_error"] = float(node.real())
-        node = fs.getNode("per_view_reprojection_errors")
-        per_view = None if node.empty() else node.mat()
-        if per_view is not None:
-            extra["per_view_reprojection_errors"] = np.asarray(per_view, float).ravel()
-    finally:
-        fs.release()
+    doc = read_storage(path)  # not cv2.FileStorage: it aborts the process on some damaged files
+    K = doc.get("camera_matrix")
+    if not isinstance(K, np.ndarray) or K.shape != (3, 3):
+        raise CalibrationError(f"{path}: camera_matrix is missing or not 3x3")
+    d = doc.get("distortion_coefficients")
+    if d is not None and not isinstance(d, np.ndarray):
+        raise CalibrationError(f"{path}: distortion_coefficients must be an opencv-matrix")
+    d = np.zeros(5) if d is None else d.ravel()
+    if d.size > 5 and np.any(d[5:] != 0):
+        raise CalibrationError(
+            f"{path}: distortion_coefficients has non-zero terms beyond k3 (rational/thin-prism model); "
+            "only [k1, k2, p1, p2, k3] is supported"
+        )
+    dist = np.zeros(5)
+    dist[: min(5, d.size)] = d[:5]
+    w, h = doc.get("image_width"), doc.get("image_height")
+    if w is None or h is None:
+        raise CalibrationError(f"{path}: image_width / image_height are missing")
+    if not all(_is_number(v) and math.isfinite(v) and 0 < v < 2**31 for v in (w, h)):
+        raise CalibrationError(f"{path}: image_width / image_height must be positive finite numbers")
+    size = (int(w), int(h))
+    extra = {}
+    rms = doc.get("avg_reprojection_error")
+    if rms is not None:
+        if not _is_number(rms):
+            raise CalibrationError(f"{path}: avg_reprojection_error must be a number")
+        extra["avg_reprojection_error"] = float(rms)
+    per_view = doc.get("per_view_reprojection_errors")
+    if per_view is not None:
+        if not isinstance(per_view, np.ndarray):
+            raise CalibrationError(f"{path}: per_view_reprojection_errors must be an opencv-matrix")
+        extra["per_view_reprojection_errors"] = per_view.ravel()
     try:
         camera = Camera(np.asarray(K, float), dist, image_size=size)
     except ValueError as e:
         raise CalibrationError(f"{path}: {e}") from None
     return camera, extra
+
+
+def _is_number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def write_opencv(path: str | Path, camera: Camera, *, rms_px: float | None = None) -> Path:

@@ -49,6 +49,7 @@ from . import _files as calibio
 from .. import validate
 from ..camera import Camera, nearest_rotation
 from ..errors import CalibrationError
+from ._storage import read_storage
 
 __all__ = ["CAMERA_FORMATS", "CameraFile", "camera_format", "export_cameras", "read_cameras", "write_cameras"]
 
@@ -568,8 +569,6 @@ def _line_of(path, key):
 
 
 def _read_opencv(path, image_size):
-    import cv2
-
     camera = calibio.read_opencv(path)[0]
     if not (np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.dist))):
         key = "camera_matrix" if not np.all(np.isfinite(camera.K)) else "distortion_coefficients"
@@ -578,30 +577,25 @@ def _read_opencv(path, image_size):
         _fail(path, _line_of(path, "camera_matrix"), "camera_matrix must have positive focal lengths")
     _check_size(path, _line_of(path, "image_width"), camera.image_size, image_size)
     poses, notes = {}, []
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        views = fs.getNode("views")
-        ext = fs.getNode("extrinsic_parameters")
-        if not views.empty():
-            line = _line_of(path, "views")
-            if not views.isSeq():
-                _fail(path, line, "views must be a sequence of {image, rvec, tvec}")
-            for k in range(views.size()):
-                v = views.at(k)
-                name, rvec, tvec = v.getNode("image"), v.getNode("rvec").mat(), v.getNode("tvec").mat()
-                if name.empty() or not name.isString() or rvec is None or tvec is None:
-                    _fail(path, line, f"views[{k}] needs image (a string), rvec and tvec (3x1)")
-                poses[name.string()] = _opencv_pose(rvec, tvec, path, line, f"views[{k}]")
-        elif not ext.empty():
-            line = _line_of(path, "extrinsic_parameters")
-            m = ext.mat()
-            if m is None or m.ndim != 2 or m.shape[1] != 6:
-                _fail(path, line, "extrinsic_parameters must be an N x 6 matrix [rvec | tvec]")
-            for k, row in enumerate(np.asarray(m, np.float64)):
-                poses[f"#{k + 1}"] = _opencv_pose(row[:3], row[3:], path, line, f"extrinsic_parameters row {k}")
-            notes.append(f"{len(poses)} poses (extrinsic_parameters, no image names): matched to the views in name order")
-    finally:
-        fs.release()
+    doc = read_storage(path)  # not cv2.FileStorage: it aborts the process on some damaged files
+    views, ext = doc.get("views"), doc.get("extrinsic_parameters")
+    if views is not None:
+        line = _line_of(path, "views")
+        if not isinstance(views, list):
+            _fail(path, line, "views must be a sequence of {image, rvec, tvec}")
+        for k, v in enumerate(views):
+            name = v.get("image") if isinstance(v, dict) else None
+            rvec, tvec = (v.get("rvec"), v.get("tvec")) if isinstance(v, dict) else (None, None)
+            if not isinstance(name, str) or not isinstance(rvec, np.ndarray) or not isinstance(tvec, np.ndarray):
+                _fail(path, line, f"views[{k}] needs image (a string), rvec and tvec (3x1)")
+            poses[name] = _opencv_pose(rvec, tvec, path, line, f"views[{k}]")
+    elif ext is not None:
+        line = _line_of(path, "extrinsic_parameters")
+        if not isinstance(ext, np.ndarray) or ext.ndim != 2 or ext.shape[1] != 6:
+            _fail(path, line, "extrinsic_parameters must be an N x 6 matrix [rvec | tvec]")
+        for k, row in enumerate(np.asarray(ext, np.float64)):
+            poses[f"#{k + 1}"] = _opencv_pose(row[:3], row[3:], path, line, f"extrinsic_parameters row {k}")
+        notes.append(f"{len(poses)} poses (extrinsic_parameters, no image names): matched to the views in name order")
     return camera, poses, notes, path
 
 
