@@ -116,4 +116,6 @@ def test_mesh_command_on_a_result_folder(rec, tmp_path, capsys):
     assert {p.name for p in out.iterdir()} >= {"mesh.ply", "mesh.stl", "mesh.obj", "mesh.vtu", "aaa.json"}
     assert "max diameter" in capsys.readouterr().out
     assert main(["mesh", str(tmp_path / "nothing")]) == 2
-    assert "voxels.npz: not found" in capsys.readouterr().err
+    err = capsys.readouterr().err  # read through Reconstruction.load: the folder named, and how to make one
+    assert "nothing: no such result folder" in err and "organlab reconstruct SESSION --out" in err
+    assert len(err.strip().splitlines()) == 1

@@ -115,7 +115,10 @@ def test_checker_fit_is_the_calibration_stage(session, checker, truth):
     names = [session.relpath(p) for p in session.intrinsic_images]
     ref = calibrate_intrinsics(images, session.pattern, image_size=session.image_size, names=names)
     assert np.allclose(checker.baseline.camera.K, ref.camera.K, rtol=0, atol=1e-6)
-    assert np.allclose(checker.baseline.camera.dist, ref.camera.dist, rtol=0, atol=1e-9)
+    # the same fit, not the same last bits: in a two-worker suite run the two fits differed below 1e-8 in
+    # the distortion terms (1e-7 mm in a board pose; OpenCV's parallel reductions); 1e-7 here is
+    # < 1e-4 px at the image's corner
+    assert np.allclose(checker.baseline.camera.dist, ref.camera.dist, rtol=0, atol=1e-7)
     # given the corners a calibration detected, the same fit without detecting again
     reused = CalibrationChecker(images, session.pattern, names=names, image_size=session.image_size, corners=ref.corners)
     assert reused.corners.keys() == checker.corners.keys()

@@ -69,8 +69,8 @@ mesh = ol.mesh_from_field(field, grid)
 measures = ol.measure(mesh)
 print(f"grid {grid.shape}, {grid.n_voxels} voxels of {grid.voxel_size:g} mm")
 print(f"thesis's box test : {grid.volume_of(occ_box) / 1000:7.2f} cm3 ({100 * (grid.volume_of(occ_box) / true_volume - 1):+.1f} %)")
-print(f"sub-voxel hull    : {measures['volume_mm3'] / 1000:7.2f} cm3 ({100 * (measures['volume_mm3'] / true_volume - 1):+.2f} %), "
-      f"area {measures['area_mm2'] / 100:.1f} cm2, watertight: {measures['watertight']}")
+print(f"sub-voxel hull    : {measures.volume_mm3 / 1000:7.2f} cm3 ({100 * (measures.volume_mm3 / true_volume - 1):+.2f} %), "
+      f"area {measures.area_mm2 / 100:.1f} cm2, watertight: {measures.watertight}")
 
 # %% [markdown]
 # Horizontal slices through both, with the phantom's true section (dashed, from
