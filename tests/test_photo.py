@@ -144,7 +144,7 @@ def test_engine_offers_photo(bowls, tmp_path):
 @needs_dino
 @pytest.mark.slow
 def test_dino_photo_keeps_the_silhouettes():
-    """Real photos, the authors' masks, 2 mm: the photo model's silhouette IoU stays within 0.005 of the hull's."""
+    """Real photos, the authors' masks, 3 mm: the photo model's silhouette IoU stays within 0.005 of the hull's."""
     from organlab.datasets import load_middlebury, middlebury_silhouettes
 
     data = load_middlebury(DINO)
@@ -152,7 +152,7 @@ def test_dino_photo_keeps_the_silhouettes():
     imgs = [data.images[i] for i in good]
     cams = [data.cameras[i] for i in good]
     masks = middlebury_silhouettes(imgs)
-    grid = ol.VoxelGrid.from_roi(data.bbox[0] - 4.0, data.bbox[1] + 4.0, 2.0)
+    grid = ol.VoxelGrid.from_roi(data.bbox[0] - 4.0, data.bbox[1] + 4.0, 3.0)  # 3 mm: 50 s alone (2 mm: 84 s in the suite)
     hull = hull_field([m.astype(np.float32) for m in masks], cams, grid) >= 0.5
     r = photo_carve(imgs, cams, hull, grid, masks=masks)
 
