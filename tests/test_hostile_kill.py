@@ -100,7 +100,9 @@ def test_calibrate_killed_then_rerun(session, tmp_path, kill):
     assert done.returncode == 0, done.stderr
     got = json.loads((out / "calibration.json").read_text())
     want = json.loads((session / "calibration.json").read_text())  # the same fit, uninterrupted
-    assert np.allclose(got["camera"]["K"], want["camera"]["K"], rtol=1e-9, atol=0)
+    # the same fit, not the same last bits: two processes' fits of the sample differed by up to 2.4e-9
+    # relative (cx 4e-7 px apart in CI's two-worker run; OpenCV's threads), so 1e-7 relative
+    assert np.allclose(got["camera"]["K"], want["camera"]["K"], rtol=1e-7, atol=0)
     assert _leftovers(out) == [] and (out / "calibration_check").is_dir()
 
 
