@@ -89,6 +89,28 @@ def _dump(doc):
         return '{"views": ' + "[" * 100000 + "]" * 100000 + "}"
 
 
+def npz_cases(good, raw):
+    """Damaged ``.npz`` files: one array of ``good`` dropped or replaced, or the bytes ``raw`` corrupted."""
+    return st.one_of(
+        st.tuples(st.just("arrays"), st.sampled_from(sorted(good)), st.one_of(st.none(), _arrays)),
+        st.tuples(st.just("bytes"), corrupted(raw), st.none()),
+    )
+
+
+def write_npz_case(path, good, case):
+    """Write one case of :func:`npz_cases` to ``path``."""
+    kind, a, b = case
+    if kind == "bytes":
+        path.write_bytes(a)
+        return
+    arrays = dict(good)
+    if b is None:
+        del arrays[a]
+    else:
+        arrays[a] = b
+    np.savez(path, **arrays)
+
+
 def _accept(fn):
     """A valid result or a one-line OrganlabError; anything else propagates (the test fails)."""
     try:
@@ -257,21 +279,9 @@ def test_voxels_npz_reader(result_dir, tmp_path_factory):
     folder = tmp_path_factory.mktemp("vox")
 
     @FUZZ
-    @given(st.one_of(
-        st.tuples(st.just("arrays"), st.sampled_from(sorted(good)), st.one_of(st.none(), _arrays)),
-        st.tuples(st.just("bytes"), corrupted(raw), st.none()),
-    ))
+    @given(npz_cases(good, raw))
     def check(case):
-        kind, a, b = case
-        if kind == "arrays":
-            arrays = dict(good)
-            if b is None:
-                del arrays[a]
-            else:
-                arrays[a] = b
-            np.savez(folder / "voxels.npz", **arrays)
-        else:
-            (folder / "voxels.npz").write_bytes(a)
+        write_npz_case(folder / "voxels.npz", good, case)
         out = _accept(lambda: load_voxels(folder))
         if out is not None:
             vol, grid = out

@@ -21,8 +21,7 @@ from _hostile import small_calibrated
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-from test_hostile_fuzz import _accept, _arrays, _dump, corrupted, mutated  # noqa: E402
+from test_hostile_fuzz import _accept, _dump, corrupted, mutated, npz_cases, write_npz_case  # noqa: E402
 
 from organlab import load_session  # noqa: E402
 from organlab.cli import main  # noqa: E402
@@ -107,21 +106,9 @@ def test_voxels_npz_fuzz(result, tmp_path):
     raw = (folder / "voxels.npz").read_bytes()
 
     @FUZZ
-    @given(st.one_of(
-        st.tuples(st.just("arrays"), st.sampled_from(sorted(good)), st.one_of(st.none(), _arrays)),
-        st.tuples(st.just("bytes"), corrupted(raw), st.none()),
-    ))
+    @given(npz_cases(good, raw))
     def check(case):
-        kind, a, b = case
-        if kind == "arrays":
-            arrays = dict(good)
-            if b is None:
-                del arrays[a]
-            else:
-                arrays[a] = b
-            np.savez(work / "voxels.npz", **arrays)
-        else:
-            (work / "voxels.npz").write_bytes(a)
+        write_npz_case(work / "voxels.npz", good, case)
         rec = _accept(lambda: Reconstruction.load(work))
         if rec is not None:
             _valid(rec)
