@@ -1,0 +1,481 @@
+"""Adaptive isotropic remeshing that stays on the data (numba).
+
+Botsch and Kobbelt's remeshing loop (split edges longer than 4/3 of their
+target, collapse those shorter than 4/5, flip edges toward better triangles,
+relax the vertices in their tangent planes), with two changes that keep the
+result on the marching-cubes surface:
+
+- the **target edge is per vertex** (a sizing field on the reference
+  surface): the uniform edge ``max_mm`` where the surface is flat, shorter
+  where it curves (an edge of length ``h`` across a radius ``R`` strays
+  ``h^2 / (8 R)`` from it: ``h = sqrt(8 R tol)``), never below ``min_mm``,
+  and graded (it grows by at most ``grade`` per mm away from a small one),
+  so a fin thinner than ``max_mm`` keeps its rim;
+- every relaxation step **projects each vertex back onto the reference
+  surface** (its closest point, :mod:`._deviation`'s kernel), so no vertex
+  drifts more than the chord error off it; a vertex whose closest point
+  jumps further than half its edge (another sheet of a thin part) stays.
+
+The local operations keep the mesh closed, manifold and consistently
+oriented: a collapse obeys the link condition and refuses to flip or fold a
+neighbouring face, a flip refuses a fold (faces more than ``flip_deg``
+apart) or an existing edge.  The operations of one sweep run in one pass
+over the faces; a face an operation changed is locked for the rest of that
+sweep (so the vertex stars read at the sweep's start stay exact where they
+are used), and the next sweep rebuilds the stars: every sweep is linear in
+the faces.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..mesh import Mesh
+from ._deviation import _Surface
+
+# ------------------------------------------------------------------ small geometry helpers
+
+
+@njit(cache=True, inline="always")
+def _sub(V, a, b):
+    return V[a, 0] - V[b, 0], V[a, 1] - V[b, 1], V[a, 2] - V[b, 2]
+
+
+@njit(cache=True)
+def _normal(p0, p1, p2):
+    ux, uy, uz = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+    vx, vy, vz = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
+    return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+
+
+@njit(cache=True)
+def _min_cos_angle(p0, p1, p2):
+    """The largest cosine of the triangle's angles (its smallest angle's), 1.0 for a degenerate one."""
+    best = -1.0
+    for i in range(3):
+        a = (p0, p1, p2)[i]
+        b = (p0, p1, p2)[(i + 1) % 3]
+        c = (p0, p1, p2)[(i + 2) % 3]
+        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        vx, vy, vz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        nu = math.sqrt(ux * ux + uy * uy + uz * uz)
+        nv = math.sqrt(vx * vx + vy * vy + vz * vz)
+        if nu == 0.0 or nv == 0.0:
+            return 1.0
+        cs = (ux * vx + uy * vy + uz * vz) / (nu * nv)
+        if cs > best:
+            best = cs
+    return best
+
+
+@njit(cache=True)
+def _stars(F, alive, nf, nv):
+    """Vertex -> faces (CSR) of the alive faces."""
+    cnt = np.zeros(nv + 1, dtype=np.int64)
+    for f in range(nf):
+        if alive[f]:
+            for i in range(3):
+                cnt[F[f, i] + 1] += 1
+    for i in range(nv):
+        cnt[i + 1] += cnt[i]
+    lst = np.empty(cnt[nv], dtype=np.int64)
+    pos = cnt[:nv].copy()
+    for f in range(nf):
+        if alive[f]:
+            for i in range(3):
+                v = F[f, i]
+                lst[pos[v]] = f
+                pos[v] += 1
+    return cnt, lst
+
+
+@njit(cache=True)
+def _other_face(F, alive, lock, start, lst, f, a, b):
+    """The unlocked face holding the directed edge ``b -> a`` (the twin of ``f``'s ``a -> b``), or -1."""
+    for k in range(start[a], start[a + 1]):
+        q = lst[k]
+        if q == f or not alive[q] or lock[q]:
+            continue
+        for j in range(3):
+            if F[q, j] == b and F[q, (j + 1) % 3] == a:
+                return q
+    return -1
+
+
+@njit(cache=True)
+def _third(F, q, a, b):
+    for j in range(3):
+        v = F[q, j]
+        if v != a and v != b:
+            return v
+    return -1
+
+
+@njit(cache=True)
+def _star_free(lock, start, lst, v):
+    for k in range(start[v], start[v + 1]):
+        if lock[lst[k]]:
+            return False
+    return True
+
+
+# ------------------------------------------------------------------ the three local operations
+
+
+@njit(cache=True)
+def _split_long(V, F, H, alive, lock, nv, nf, hi):
+    """Split every edge longer than ``hi`` times its target (the longest of a face first).
+
+    Returns ``(nv, nf, full)``: ``full`` when the arrays ran out of room (the caller grows them).
+    """
+    start, lst = _stars(F, alive, nf, nv)
+    nf0 = nf
+    for f in range(nf0):
+        if not alive[f] or lock[f]:
+            continue
+        best, bi = 0.0, -1
+        for i in range(3):
+            a, b = F[f, i], F[f, (i + 1) % 3]
+            dx, dy, dz = _sub(V, a, b)
+            h = hi * min(H[a], H[b])
+            r = (dx * dx + dy * dy + dz * dz) / (h * h)
+            if r > 1.0 and r > best:
+                best, bi = r, i
+        if bi < 0:
+            continue
+        if nv + 1 > V.shape[0] or nf + 2 > F.shape[0]:
+            return nv, nf, True
+        a, b, c = F[f, bi], F[f, (bi + 1) % 3], F[f, (bi + 2) % 3]
+        g = _other_face(F, alive, lock, start, lst, f, a, b)
+        if g < 0:
+            continue
+        d = _third(F, g, a, b)
+        m = nv
+        nv += 1
+        for k in range(3):
+            V[m, k] = 0.5 * (V[a, k] + V[b, k])
+        H[m] = min(H[a], H[b])
+        F[f, 0], F[f, 1], F[f, 2] = a, m, c
+        F[nf, 0], F[nf, 1], F[nf, 2] = m, b, c
+        F[g, 0], F[g, 1], F[g, 2] = b, m, d
+        F[nf + 1, 0], F[nf + 1, 1], F[nf + 1, 2] = m, a, d
+        alive[nf] = alive[nf + 1] = True
+        lock[f] = lock[g] = lock[nf] = lock[nf + 1] = True
+        nf += 2
+    return nv, nf, False
+
+
+@njit(cache=True)
+def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn):
+    """Collapse every edge shorter than ``lo`` times its target into its midpoint, where that is safe.
+
+    Safe: the link condition (the two ends share only the two opposite vertices), those two keep
+    more than 3 neighbours, no edge of the new star longer than ``hi`` times its target, and no
+    face of the star turns by more than ``acos(cos_turn)`` (a flip or a fold).  Returns collapses done.
+    """
+    start, lst = _stars(F, alive, nf, nv)
+    done = 0
+    na = np.empty(64, dtype=np.int64)
+    for f in range(nf):
+        if not alive[f] or lock[f]:
+            continue
+        best, bi = 1.0, -1
+        for i in range(3):
+            a, b = F[f, i], F[f, (i + 1) % 3]
+            dx, dy, dz = _sub(V, a, b)
+            h = lo * min(H[a], H[b])
+            r = (dx * dx + dy * dy + dz * dz) / (h * h)
+            if r < best:
+                best, bi = r, i
+        if bi < 0:
+            continue
+        a, b, c = F[f, bi], F[f, (bi + 1) % 3], F[f, (bi + 2) % 3]
+        if not (_star_free(lock, start, lst, a) and _star_free(lock, start, lst, b)
+                and _star_free(lock, start, lst, c)):
+            continue
+        g = _other_face(F, alive, lock, start, lst, f, a, b)
+        if g < 0:
+            continue
+        d = _third(F, g, a, b)
+        if not _star_free(lock, start, lst, d):
+            continue
+        if start[c + 1] - start[c] <= 3 or start[d + 1] - start[d] <= 3:
+            continue
+        # link condition: the neighbours of a and of b share c and d only
+        n = 0
+        for k in range(start[a], start[a + 1]):
+            q = lst[k]
+            for j in range(3):
+                v = F[q, j]
+                if v != a and n < 64:
+                    na[n] = v
+                    n += 1
+        shared = 0
+        ok = True
+        for k in range(start[b], start[b + 1]):
+            q = lst[k]
+            for j in range(3):
+                v = F[q, j]
+                if v == b or v == a:
+                    continue
+                for t in range(n):
+                    if na[t] == v:
+                        if v != c and v != d:
+                            ok = False
+                        break
+        if not ok or n >= 64:
+            continue
+        px = 0.5 * (V[a, 0] + V[b, 0])
+        py = 0.5 * (V[a, 1] + V[b, 1])
+        pz = 0.5 * (V[a, 2] + V[b, 2])
+        hnew = min(H[a], H[b])
+        p = np.array((px, py, pz))
+        # the new star: every face of a or b except f and g, with a or b moved to p
+        for s in (a, b):
+            if not ok:
+                break
+            for k in range(start[s], start[s + 1]):
+                q = lst[k]
+                if q == f or q == g:
+                    continue
+                i0 = 0
+                for j in range(3):
+                    if F[q, j] == s:
+                        i0 = j
+                u, w = F[q, (i0 + 1) % 3], F[q, (i0 + 2) % 3]
+                for o in (u, w):
+                    ex, ey, ez = V[o, 0] - px, V[o, 1] - py, V[o, 2] - pz
+                    h = hi * min(hnew, H[o])
+                    if ex * ex + ey * ey + ez * ez > h * h:
+                        ok = False
+                n0 = _normal(V[s], V[u], V[w])
+                n1 = _normal(p, V[u], V[w])
+                l0 = math.sqrt(n0[0] ** 2 + n0[1] ** 2 + n0[2] ** 2)
+                l1 = math.sqrt(n1[0] ** 2 + n1[1] ** 2 + n1[2] ** 2)
+                if l0 == 0.0 or l1 == 0.0 or (n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2]) < cos_turn * l0 * l1:
+                    ok = False
+                    break
+        if not ok:
+            continue
+        for k in range(start[b], start[b + 1]):
+            q = lst[k]
+            for j in range(3):
+                if F[q, j] == b:
+                    F[q, j] = a
+            lock[q] = True
+        for k in range(start[a], start[a + 1]):
+            lock[lst[k]] = True
+        alive[f] = alive[g] = False
+        V[a, 0], V[a, 1], V[a, 2] = px, py, pz
+        H[a] = hnew
+        valive[b] = False
+        done += 1
+    return done
+
+
+@njit(cache=True)
+def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain):
+    """Flip an edge to the other diagonal of its two faces where the smallest angle grows by ``gain``.
+
+    Only across edges whose faces are less than ``acos(cos_fold)`` apart (a ridge or a thin part's rim is
+    kept), never onto an existing edge, never turning a new face against the old ones.  Returns flips done.
+    """
+    start, lst = _stars(F, alive, nf, nv)
+    done = 0
+    for f in range(nf):
+        if not alive[f] or lock[f]:
+            continue
+        for i in range(3):
+            a, b, c = F[f, i], F[f, (i + 1) % 3], F[f, (i + 2) % 3]
+            g = _other_face(F, alive, lock, start, lst, f, a, b)
+            if g < 0:
+                continue
+            d = _third(F, g, a, b)
+            if c == d or not (_star_free(lock, start, lst, c) and _star_free(lock, start, lst, d)):
+                continue
+            exists = False
+            for k in range(start[c], start[c + 1]):
+                q = lst[k]
+                if F[q, 0] == d or F[q, 1] == d or F[q, 2] == d:
+                    exists = True
+            if exists:
+                continue
+            nf_ = _normal(V[a], V[b], V[c])
+            ng = _normal(V[b], V[a], V[d])
+            lf = math.sqrt(nf_[0] ** 2 + nf_[1] ** 2 + nf_[2] ** 2)
+            lg = math.sqrt(ng[0] ** 2 + ng[1] ** 2 + ng[2] ** 2)
+            if lf == 0.0 or lg == 0.0:
+                continue
+            if nf_[0] * ng[0] + nf_[1] * ng[1] + nf_[2] * ng[2] < cos_fold * lf * lg:
+                continue
+            old = max(_min_cos_angle(V[a], V[b], V[c]), _min_cos_angle(V[b], V[a], V[d]))
+            new = max(_min_cos_angle(V[c], V[a], V[d]), _min_cos_angle(V[d], V[b], V[c]))
+            if not (math.acos(min(new, 1.0)) > math.acos(min(old, 1.0)) + gain):
+                continue
+            n1 = _normal(V[c], V[a], V[d])
+            n2 = _normal(V[d], V[b], V[c])
+            m = (nf_[0] / lf + ng[0] / lg, nf_[1] / lf + ng[1] / lg, nf_[2] / lf + ng[2] / lg)
+            if (n1[0] * m[0] + n1[1] * m[1] + n1[2] * m[2]) <= 0.0 or (n2[0] * m[0] + n2[1] * m[1] + n2[2] * m[2]) <= 0.0:
+                continue
+            F[f, 0], F[f, 1], F[f, 2] = c, a, d
+            F[g, 0], F[g, 1], F[g, 2] = d, b, c
+            lock[f] = lock[g] = True
+            done += 1
+            break
+    return done
+
+
+# ------------------------------------------------------------------ the driver
+
+
+def _compact(V, F, H, alive, valive, nv, nf):
+    f = F[:nf][alive[:nf]]
+    used = np.zeros(nv, dtype=bool)
+    used[f.ravel()] = True
+    new = np.cumsum(used) - 1
+    return V[:nv][used].copy(), new[f], H[:nv][used].copy()
+
+
+def _vertex_normals(V, F):
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    out = np.zeros_like(V)
+    for i in range(3):
+        np.add.at(out, F[:, i], n)
+    return out / (np.linalg.norm(out, axis=1, keepdims=True) + 1e-300)
+
+
+def _neighbour_mean(V, F):
+    """Each vertex's mean over its faces' centroids weighted by their areas."""
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    area = np.linalg.norm(n, axis=1)
+    c = V[F].mean(axis=1) * area[:, None]
+    acc = np.zeros_like(V)
+    w = np.zeros(len(V))
+    for i in range(3):
+        np.add.at(acc, F[:, i], c)
+        np.add.at(w, F[:, i], area)
+    return acc / np.maximum(w, 1e-300)[:, None]
+
+
+def sizing_field(mesh: Mesh, *, max_mm: float, min_mm: float, tol_mm: float, grade: float = 0.5) -> np.ndarray:
+    """Target edge length at each vertex of ``mesh``, mm, ``(V,)`` float64.
+
+    ``sqrt(8 R tol_mm)`` where the surface's radius of curvature is ``R`` (from how fast the vertex
+    normals turn along the edges), clipped to ``[min_mm, max_mm]``, then graded: no vertex's target
+    exceeds a neighbour's by more than ``grade`` times their distance.
+    """
+    V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    n = _vertex_normals(V, F)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    d = V[e[:, 1]] - V[e[:, 0]]
+    l2 = np.einsum("ij,ij->i", d, d)
+    # curvature along the edge from the turn of the normals: |n_b - n_a| / |b - a|; short marching-cubes
+    # edges (< 0.2 of the minimum) are left out, their normals are noise over such a distance
+    dn = np.linalg.norm(n[e[:, 1]] - n[e[:, 0]], axis=1)
+    good = l2 > (0.2 * min_mm) ** 2
+    k = np.where(good, dn / np.sqrt(np.maximum(l2, 1e-300)), 0.0)
+    kv = np.zeros(len(V))
+    np.maximum.at(kv, e[:, 0], k)
+    np.maximum.at(kv, e[:, 1], k)
+    with np.errstate(divide="ignore"):
+        h = np.sqrt(8.0 * tol_mm / np.maximum(kv, 1e-12))
+    h = np.clip(h, min_mm, max_mm)
+    ln = np.sqrt(l2)
+    for _ in range(50):
+        cap = np.minimum(h[e[:, 1]] + grade * ln, h[e[:, 0]])
+        new = h.copy()
+        np.minimum.at(new, e[:, 0], cap)
+        if np.array_equal(new, h):
+            break
+        h = new
+    return h
+
+
+def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iterations: int = 6,
+                    relax: float = 0.8, flip_deg: float = 35.0, turn_deg: float = 60.0) -> Mesh:
+    """Remesh ``mesh`` (closed, manifold, oriented) toward the per-vertex ``sizing`` of ``reference``,
+    its vertices on ``reference``'s surface (see the module's docstring).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        The start (usually ``reference`` itself).
+    reference : Mesh
+        The surface to stay on; world frame, mm.
+    sizing : (len(reference.vertices),) float64, mm
+        Target edge length at the reference's vertices (:func:`sizing_field`).
+    iterations : int
+        Split / collapse / flip / relax rounds.
+
+    Returns
+    -------
+    Mesh
+    """
+    ref = _Surface(reference)
+    rsize = np.asarray(sizing, dtype=np.float64)
+    V = np.array(mesh.vertices, dtype=np.float64)
+    F = np.array(mesh.faces, dtype=np.int64)
+    _, _, face = ref.closest(V)
+    H = rsize[ref.f[face]].min(axis=1)
+    cos_fold, cos_turn = math.cos(math.radians(flip_deg)), math.cos(math.radians(turn_deg))
+    for it in range(int(iterations)):
+        nv, nf = len(V), len(F)
+        cap_v, cap_f = 2 * nv + 16, 2 * nf + 32
+        Vb = np.zeros((cap_v, 3))
+        Vb[:nv] = V
+        Fb = np.zeros((cap_f, 3), dtype=np.int64)
+        Fb[:nf] = F
+        Hb = np.zeros(cap_v)
+        Hb[:nv] = H
+        alive = np.zeros(cap_f, dtype=bool)
+        alive[:nf] = True
+        valive = np.ones(cap_v, dtype=bool)
+        # splits until none is left (each sweep locks the faces it changed)
+        for _ in range(8):
+            lock = np.zeros(cap_f, dtype=bool)
+            nv0 = nv
+            nv, nf, full = _split_long(Vb, Fb, Hb, alive, lock, nv, nf, 4.0 / 3.0)
+            if full:
+                Vb = np.concatenate([Vb, np.zeros_like(Vb)])
+                Hb = np.concatenate([Hb, np.zeros_like(Hb)])
+                valive = np.concatenate([valive, np.ones(len(valive), dtype=bool)])
+                Fb = np.concatenate([Fb, np.zeros_like(Fb)])
+                alive = np.concatenate([alive, np.zeros(len(alive), dtype=bool)])
+                continue
+            if nv == nv0:
+                break
+        for _ in range(8):
+            lock = ~alive[: len(alive)].copy()
+            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn) == 0:
+                break
+        for _ in range(4):
+            lock = ~alive.copy()
+            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5)) == 0:
+                break
+        V, F, H = _compact(Vb, Fb, Hb, alive, valive, nv, nf)
+        V, H = _relax(V, F, H, ref, rsize, relax)
+    # flips once more after the last relaxation
+    nv, nf = len(V), len(F)
+    alive = np.ones(nf, dtype=bool)
+    for _ in range(4):
+        lock = np.zeros(nf, dtype=bool)
+        if _flip_edges(V, F, alive, lock, nv, nf, cos_fold, math.radians(0.5)) == 0:
+            break
+    return Mesh(V, F)
+
+
+def _relax(V, F, H, ref, rsize, relax):
+    """Tangential relaxation toward the area-weighted centroid of the star, projected onto ``ref``."""
+    n = _vertex_normals(V, F)
+    c = _neighbour_mean(V, F) - V
+    c -= np.einsum("ij,ij->i", c, n)[:, None] * n
+    moved = V + relax * c
+    q, dist, face = ref.closest(moved)
+    # a vertex whose closest point is far from where it moved (another sheet of a thin part) stays
+    ok = dist <= 0.5 * H
+    V = np.where(ok[:, None], q, V)
+    H = np.where(ok, rsize[ref.f[face]].min(axis=1), H)
+    return V, H
