@@ -52,23 +52,24 @@ def _normal(p0, p1, p2):
 
 
 @njit(cache=True)
-def _min_cos_angle(p0, p1, p2):
-    """The largest cosine of the triangle's angles (its smallest angle's), 1.0 for a degenerate one."""
-    best = -1.0
-    for i in range(3):
-        a = (p0, p1, p2)[i]
-        b = (p0, p1, p2)[(i + 1) % 3]
-        c = (p0, p1, p2)[(i + 2) % 3]
-        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-        vx, vy, vz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
-        nu = math.sqrt(ux * ux + uy * uy + uz * uz)
-        nv = math.sqrt(vx * vx + vy * vy + vz * vz)
-        if nu == 0.0 or nv == 0.0:
-            return 1.0
-        cs = (ux * vx + uy * vy + uz * vz) / (nu * nv)
-        if cs > best:
-            best = cs
-    return best
+def _cos3(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Cosine of the angle at ``a`` of triangle ``abc`` (1.0 when an edge is degenerate)."""
+    ux, uy, uz = bx - ax, by - ay, bz - az
+    vx, vy, vz = cx - ax, cy - ay, cz - az
+    d = (ux * ux + uy * uy + uz * uz) * (vx * vx + vy * vy + vz * vz)
+    if d == 0.0:
+        return 1.0
+    return (ux * vx + uy * vy + uz * vz) / math.sqrt(d)
+
+
+@njit(cache=True)
+def _max_cos(V, a, b, c):
+    """The largest cosine of triangle ``abc``'s angles (that of its smallest angle)."""
+    ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
+    bx, by, bz = V[b, 0], V[b, 1], V[b, 2]
+    cx, cy, cz = V[c, 0], V[c, 1], V[c, 2]
+    return max(_cos3(ax, ay, az, bx, by, bz, cx, cy, cz), _cos3(bx, by, bz, cx, cy, cz, ax, ay, az),
+               _cos3(cx, cy, cz, ax, ay, az, bx, by, bz))
 
 
 @njit(cache=True)
@@ -122,6 +123,23 @@ def _star_free(lock, start, lst, v):
     return True
 
 
+@njit(cache=True)
+def _segments_apart(V, a, b, c, d):
+    """Distance between segments ``ab`` and ``cd`` (sampled: 9 points of ``cd`` against ``ab``)."""
+    ux, uy, uz = _sub(V, b, a)
+    uu = ux * ux + uy * uy + uz * uz
+    best = np.inf
+    for k in range(1, 10):
+        t = k / 10.0
+        px = V[c, 0] + t * (V[d, 0] - V[c, 0]) - V[a, 0]
+        py = V[c, 1] + t * (V[d, 1] - V[c, 1]) - V[a, 1]
+        pz = V[c, 2] + t * (V[d, 2] - V[c, 2]) - V[a, 2]
+        s = min(max((px * ux + py * uy + pz * uz) / uu, 0.0), 1.0) if uu > 0 else 0.0
+        qx, qy, qz = px - s * ux, py - s * uy, pz - s * uz
+        best = min(best, qx * qx + qy * qy + qz * qz)
+    return math.sqrt(best)
+
+
 # ------------------------------------------------------------------ the three local operations
 
 
@@ -169,20 +187,23 @@ def _split_long(V, F, H, alive, lock, nv, nf, hi):
 
 
 @njit(cache=True)
-def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn):
+def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, force):
     """Collapse every edge shorter than ``lo`` times its target into its midpoint, where that is safe.
 
     Safe: the link condition (the two ends share only the two opposite vertices), those two keep
     more than 3 neighbours, no edge of the new star longer than ``hi`` times its target, and no
-    face of the star turns by more than ``acos(cos_turn)`` (a flip or a fold).  Returns collapses done.
+    face of the star turns by more than ``acos(cos_turn)`` (a flip or a fold).  With ``force`` (one
+    flag per face, or empty), only the flagged faces' shortest edges are collapsed, whatever their
+    length, where the star's smallest angle grows.  Returns collapses done.
     """
     start, lst = _stars(F, alive, nf, nv)
     done = 0
     na = np.empty(64, dtype=np.int64)
+    forced = len(force) > 0
     for f in range(nf):
-        if not alive[f] or lock[f]:
+        if not alive[f] or lock[f] or (forced and not force[f]):
             continue
-        best, bi = 1.0, -1
+        best, bi = (np.inf if forced else 1.0), -1
         for i in range(3):
             a, b = F[f, i], F[f, (i + 1) % 3]
             dx, dy, dz = _sub(V, a, b)
@@ -228,6 +249,12 @@ def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn):
                         break
         if not ok or n >= 64:
             continue
+        worst_old = 0.0
+        if forced:
+            for s in (a, b):
+                for k in range(start[s], start[s + 1]):
+                    q = lst[k]
+                    worst_old = max(worst_old, _max_cos(V, F[q, 0], F[q, 1], F[q, 2]))
         px = 0.5 * (V[a, 0] + V[b, 0])
         py = 0.5 * (V[a, 1] + V[b, 1])
         pz = 0.5 * (V[a, 2] + V[b, 2])
@@ -258,6 +285,13 @@ def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn):
                 if l0 == 0.0 or l1 == 0.0 or (n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2]) < cos_turn * l0 * l1:
                     ok = False
                     break
+                if forced:
+                    c0 = _cos3(px, py, pz, V[u, 0], V[u, 1], V[u, 2], V[w, 0], V[w, 1], V[w, 2])
+                    c1 = _cos3(V[u, 0], V[u, 1], V[u, 2], V[w, 0], V[w, 1], V[w, 2], px, py, pz)
+                    c2 = _cos3(V[w, 0], V[w, 1], V[w, 2], px, py, pz, V[u, 0], V[u, 1], V[u, 2])
+                    if max(c0, c1, c2) >= worst_old:
+                        ok = False
+                        break
         if not ok:
             continue
         for k in range(start[b], start[b + 1]):
@@ -277,7 +311,7 @@ def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn):
 
 
 @njit(cache=True)
-def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain):
+def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain, cos_good, tol):
     """Flip an edge to the other diagonal of its two faces where the smallest angle grows by ``gain``.
 
     Only across edges whose faces are less than ``acos(cos_fold)`` apart (a ridge or a thin part's rim is
@@ -288,13 +322,21 @@ def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain):
     for f in range(nf):
         if not alive[f] or lock[f]:
             continue
+        if _max_cos(V, F[f, 0], F[f, 1], F[f, 2]) < cos_good:
+            continue  # a face whose angles are all above good_deg: its neighbours' own visits flip its edges
         for i in range(3):
             a, b, c = F[f, i], F[f, (i + 1) % 3], F[f, (i + 2) % 3]
             g = _other_face(F, alive, lock, start, lst, f, a, b)
             if g < 0:
                 continue
             d = _third(F, g, a, b)
-            if c == d or not (_star_free(lock, start, lst, c) and _star_free(lock, start, lst, d)):
+            if c == d:
+                continue
+            old = max(_max_cos(V, a, b, c), _max_cos(V, b, a, d))
+            new = max(_max_cos(V, c, a, d), _max_cos(V, d, b, c))
+            if not (math.acos(min(new, 1.0)) > math.acos(min(old, 1.0)) + gain):
+                continue
+            if not (_star_free(lock, start, lst, c) and _star_free(lock, start, lst, d)):
                 continue
             exists = False
             for k in range(start[c], start[c + 1]):
@@ -311,10 +353,8 @@ def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain):
                 continue
             if nf_[0] * ng[0] + nf_[1] * ng[1] + nf_[2] * ng[2] < cos_fold * lf * lg:
                 continue
-            old = max(_min_cos_angle(V[a], V[b], V[c]), _min_cos_angle(V[b], V[a], V[d]))
-            new = max(_min_cos_angle(V[c], V[a], V[d]), _min_cos_angle(V[d], V[b], V[c]))
-            if not (math.acos(min(new, 1.0)) > math.acos(min(old, 1.0)) + gain):
-                continue
+            if tol > 0.0 and _segments_apart(V, a, b, c, d) > tol:
+                continue  # the new edge would leave the surface (across a ridge or a thin part's rim)
             n1 = _normal(V[c], V[a], V[d])
             n2 = _normal(V[d], V[b], V[c])
             m = (nf_[0] / lf + ng[0] / lg, nf_[1] / lf + ng[1] / lg, nf_[2] / lf + ng[2] / lg)
@@ -330,6 +370,10 @@ def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain):
 
 # ------------------------------------------------------------------ the driver
 
+#: faces whose angles are all above 40 degrees are left to their neighbours' flips
+_COS_GOOD = math.cos(math.radians(40.0))
+_NONE = np.zeros(0, dtype=np.bool_)
+
 
 def _compact(V, F, H, alive, valive, nv, nf):
     f = F[:nf][alive[:nf]]
@@ -341,9 +385,7 @@ def _compact(V, F, H, alive, valive, nv, nf):
 
 def _vertex_normals(V, F):
     n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    out = np.zeros_like(V)
-    for i in range(3):
-        np.add.at(out, F[:, i], n)
+    out = np.stack([sum(np.bincount(F[:, i], n[:, k], len(V)) for i in range(3)) for k in range(3)], axis=1)
     return out / (np.linalg.norm(out, axis=1, keepdims=True) + 1e-300)
 
 
@@ -352,11 +394,8 @@ def _neighbour_mean(V, F):
     n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     area = np.linalg.norm(n, axis=1)
     c = V[F].mean(axis=1) * area[:, None]
-    acc = np.zeros_like(V)
-    w = np.zeros(len(V))
-    for i in range(3):
-        np.add.at(acc, F[:, i], c)
-        np.add.at(w, F[:, i], area)
+    acc = np.stack([sum(np.bincount(F[:, i], c[:, k], len(V)) for i in range(3)) for k in range(3)], axis=1)
+    w = sum(np.bincount(F[:, i], area, len(V)) for i in range(3))
     return acc / np.maximum(w, 1e-300)[:, None]
 
 
@@ -394,8 +433,8 @@ def sizing_field(mesh: Mesh, *, max_mm: float, min_mm: float, tol_mm: float, gra
     return h
 
 
-def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iterations: int = 6,
-                    relax: float = 0.8, flip_deg: float = 35.0, turn_deg: float = 60.0) -> Mesh:
+def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iterations: int = 6, min_angle: float = 20.0,
+                    tol_mm: float = 0.1, relax: float = 0.8, flip_deg: float = 35.0, turn_deg: float = 60.0) -> Mesh:
     """Remesh ``mesh`` (closed, manifold, oriented) toward the per-vertex ``sizing`` of ``reference``,
     its vertices on ``reference``'s surface (see the module's docstring).
 
@@ -435,7 +474,7 @@ def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iteratio
         valive = np.ones(cap_v, dtype=bool)
         # splits until none is left (each sweep locks the faces it changed)
         for _ in range(8):
-            lock = np.zeros(cap_f, dtype=bool)
+            lock = np.zeros(len(alive), dtype=bool)
             nv0 = nv
             nv, nf, full = _split_long(Vb, Fb, Hb, alive, lock, nv, nf, 4.0 / 3.0)
             if full:
@@ -449,22 +488,86 @@ def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iteratio
                 break
         for _ in range(8):
             lock = ~alive[: len(alive)].copy()
-            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn) == 0:
+            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn, _NONE) == 0:
                 break
         for _ in range(4):
             lock = ~alive.copy()
-            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5)) == 0:
+            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5), _COS_GOOD, 0.0) == 0:
                 break
         V, F, H = _compact(Vb, Fb, Hb, alive, valive, nv, nf)
         V, H = _relax(V, F, H, ref, rsize, relax)
-    # flips once more after the last relaxation
-    nv, nf = len(V), len(F)
-    alive = np.ones(nf, dtype=bool)
-    for _ in range(4):
-        lock = np.zeros(nf, dtype=bool)
-        if _flip_edges(V, F, alive, lock, nv, nf, cos_fold, math.radians(0.5)) == 0:
+    return _fix_slivers(V, F, H, ref, rsize, min_angle=min_angle, tol_mm=tol_mm, cos_fold=cos_fold, cos_turn=cos_turn)
+
+
+def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, rounds=8):
+    """Local clean-up of the faces still below ``min_angle``: flips that stay within ``tol_mm`` of the
+    surface, collapses of their shortest edges that improve their stars, and a relaxation of their
+    vertices kept only where it improves their stars' smallest angle."""
+    cos_bad = math.cos(math.radians(min_angle + 1.0))
+    for _ in range(int(rounds)):
+        ang = _face_min_angles(V, F)
+        bad = ang < min_angle + 1.0
+        if not bad.any():
             break
+        nv, nf = len(V), len(F)
+        alive = np.ones(nf, dtype=bool)
+        valive = np.ones(nv, dtype=bool)
+        lock = np.zeros(nf, dtype=bool)
+        _flip_edges(V, F, alive, lock, nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm)
+        bad = _face_min_angles(V, F) < min_angle + 1.0
+        lock = np.zeros(nf, dtype=bool)
+        if _collapse_short(V, F, H, alive, valive, lock, nv, nf, 1.0, 2.0, cos_turn, bad):
+            V, F, H = _compact(V, F, H, alive, valive, nv, nf)
+        V = _smart_relax(V, F, ref, _face_min_angles(V, F) < min_angle + 1.0)
     return Mesh(V, F)
+
+
+def _face_min_angles(V, F):
+    p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    d = (p1 - p0, p2 - p1, p0 - p2)
+    ln = np.stack([np.sqrt(np.einsum("ij,ij->i", x, x)) for x in d], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.stack([-np.einsum("ij,ij->i", d[i], d[i - 1]) for i in range(3)], axis=1) / (ln * ln[:, [2, 0, 1]])
+    return np.degrees(np.arccos(np.clip(np.nan_to_num(c, nan=1.0).max(axis=1), -1.0, 1.0)))
+
+
+def _smart_relax(V, F, ref, bad, steps=3):
+    """Move the vertices of the ``bad`` faces toward their stars' centroids (projected onto ``ref``)
+    where that raises the smallest angle of their stars."""
+    verts = np.unique(F[bad])
+    if len(verts) == 0:
+        return V
+    sel = np.isin(F, verts).any(axis=1)
+    fs = np.flatnonzero(sel)
+    for _ in range(steps):
+        n = _vertex_normals(V, F)
+        c = _neighbour_mean(V, F)[verts] - V[verts]
+        c -= np.einsum("ij,ij->i", c, n[verts])[:, None] * n[verts]
+        q, _, _ = ref.closest(V[verts] + c)
+        before = _star_min(V, F, fs, verts)
+        W = V.copy()
+        W[verts] = q
+        after = _star_min(W, F, fs, verts)
+        # the normals of the star must not turn over either
+        good = after > before
+        if not good.any():
+            break
+        W[verts[~good]] = V[verts[~good]]
+        nb = np.cross(V[F[fs, 1]] - V[F[fs, 0]], V[F[fs, 2]] - V[F[fs, 0]])
+        na = np.cross(W[F[fs, 1]] - W[F[fs, 0]], W[F[fs, 2]] - W[F[fs, 0]])
+        if (np.einsum("ij,ij->i", nb, na) <= 0).any():
+            break
+        V = W
+    return V
+
+
+def _star_min(V, F, fs, verts):
+    """Smallest angle over the star of each of ``verts`` (among faces ``fs``)."""
+    ang = _face_min_angles(V, F[fs])
+    out = np.full(len(V), 180.0)
+    for i in range(3):
+        np.minimum.at(out, F[fs, i], ang)
+    return out[verts]
 
 
 def _relax(V, F, H, ref, rsize, relax):

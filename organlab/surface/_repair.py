@@ -387,6 +387,40 @@ def _remesh_step(mesh, target_mm, voxel_size, feature_deg, min_angle, keep_volum
     return out, recs
 
 
+#: The adaptive remeshing's figures, in voxels: the chord error the sizing field allows where the surface
+#: curves, the smallest edge it may ask for, and how far a flip of the final clean-up may move the surface.
+#: Measured at 1 mm (dino photos): chord 0.1 and smallest edge 0.35 gave 28 600 faces, max deviation
+#: 0.72 voxel, 23.4 degrees; chord 0.05: 47 580 faces, 0.70 voxel, 3x the time.
+CHORD_VOXELS, MIN_EDGE_VOXELS, FLIP_VOXELS = 0.1, 0.35, 0.25
+
+
+def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, reference):
+    """Adaptive remeshing (:mod:`._remesh`) of ``mesh`` (smoothed) onto ``reference`` (the repaired raw
+    surface), its volume restored to the reference's: ``(Mesh, [records])``.
+
+    The sizing field comes from the smoothed surface (the raw one's normals turn by whole voxel steps),
+    carried to the reference's vertices; the vertices are projected onto the reference itself.
+    """
+    from ._deviation import _Surface
+    from ._remesh import adaptive_remesh, sizing_field
+
+    lo = min(target_mm, MIN_EDGE_VOXELS * voxel_size)
+    h = sizing_field(mesh, max_mm=target_mm, min_mm=lo, tol_mm=CHORD_VOXELS * voxel_size)
+    if reference is not mesh:
+        smoothed = _Surface(mesh)
+        _, _, face = smoothed.closest(reference.vertices)
+        h = h[smoothed.f[face]].min(axis=1)
+    out = _oriented(adaptive_remesh(mesh, reference, h, min_angle=min_angle, tol_mm=FLIP_VOXELS * voxel_size))
+    rec = _step("remesh", mesh, out, method="adaptive", target_mm=float(target_mm), min_edge_mm=float(lo),
+                edge_mm_p10_p50=[round(float(np.percentile(h, 10)), 4), round(float(np.percentile(h, 50)), 4)])
+    if keep_volume:
+        remeshed = out
+        out = _restore_volume(remeshed, reference.volume)
+        rec["normal_offset_mm"] = (reference.volume - remeshed.volume) / remeshed.area
+        rec["volume_change_pct"] = 100.0 * (out.volume - mesh.volume) / mesh.volume
+    return out, [rec]
+
+
 def _check_mesh(mesh):
     if not isinstance(mesh, Mesh):
         raise TypeError(f"expected an organlab.surface.Mesh, got {type(mesh).__name__}")
@@ -473,7 +507,10 @@ def finish_surface(
         out, rec = smooth_mesh(out)
         steps.append(rec)
     if remesh is not None:
-        out, recs = _remesh_step(out, float(remesh), voxel_size, feature_deg, min_angle, keep_volume)
+        if _defects(out, 3.0 * voxel_size) <= {"duplicates", "specks", "unreferenced"}:  # closed, manifold, oriented
+            out, recs = _adaptive_step(out, float(remesh), float(voxel_size), min_angle, keep_volume, repaired)
+        else:  # an open or non-manifold surface (repair=False): pymeshlab's remeshing, folds cut out
+            out, recs = _remesh_step(out, float(remesh), voxel_size, feature_deg, min_angle, keep_volume)
         steps += recs
         q = mesh_quality(out)
         if repair and (q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"]):
