@@ -504,11 +504,20 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
     surface, collapses of their shortest edges that improve their stars, and a relaxation of their
     vertices kept only where it improves their stars' smallest angle."""
     cos_bad = math.cos(math.radians(min_angle + 1.0))
-    for _ in range(int(rounds)):
+    for r in range(int(rounds) + 4):
         ang = _face_min_angles(V, F)
         bad = ang < min_angle + 1.0
         if not bad.any():
             break
+        if r >= rounds:
+            # still there: a knife edge of the raw surface (faces folded back by more than 150 degrees), where no
+            # triangle of the surface is well shaped; its tip is flattened (a Laplacian step of the vertices of the
+            # faces below min_angle and their neighbours, not projected back), then cleaned up again
+            ring = np.isin(F, np.unique(F[bad])).any(axis=1)
+            verts = np.unique(F[ring])
+            V = V.copy()
+            for _ in range(2):
+                V[verts] += 0.5 * (_neighbour_mean(V, F)[verts] - V[verts])
         nv, nf = len(V), len(F)
         alive = np.ones(nf, dtype=bool)
         valive = np.ones(nv, dtype=bool)
@@ -518,7 +527,7 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
         lock = np.zeros(nf, dtype=bool)
         if _collapse_short(V, F, H, alive, valive, lock, nv, nf, 1.0, 2.0, cos_turn, bad):
             V, F, H = _compact(V, F, H, alive, valive, nv, nf)
-        V = _smart_relax(V, F, ref, _face_min_angles(V, F) < min_angle + 1.0)
+        V = _smart_relax(V, F, ref if r < rounds else None, _face_min_angles(V, F) < min_angle + 1.0)
     return Mesh(V, F)
 
 
@@ -543,7 +552,7 @@ def _smart_relax(V, F, ref, bad, steps=3):
         n = _vertex_normals(V, F)
         c = _neighbour_mean(V, F)[verts] - V[verts]
         c -= np.einsum("ij,ij->i", c, n[verts])[:, None] * n[verts]
-        q, _, _ = ref.closest(V[verts] + c)
+        q = V[verts] + c if ref is None else ref.closest(V[verts] + c)[0]
         before = _star_min(V, F, fs, verts)
         W = V.copy()
         W[verts] = q
