@@ -591,3 +591,31 @@ def _relax(V, F, H, ref, rsize, relax):
     V = np.where(ok[:, None], q, V)
     H = np.where(ok, rsize[ref.f[face]].min(axis=1), H)
     return V, H
+
+
+def fit_faces(mesh: Mesh, reference: Mesh, *, min_angle: float = 20.0, factor: float = 1.0) -> Mesh:
+    """Move each vertex along its normal by the mean signed gap between its faces' centroids and ``reference``.
+
+    A remeshed surface's vertices lie on the reference and its faces are chords: inside where the
+    surface is convex (a thin part's rim, a silhouette's contour), outside where it is concave.  This
+    offset puts the faces, not the vertices, on the reference on average, locally.  A vertex whose
+    offset would leave a face of its star below ``min_angle`` (and worse than before) keeps its place.
+    """
+    ref = reference if isinstance(reference, _Surface) else _Surface(reference)
+    V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    c = V[F].mean(axis=1)
+    q, d, face = ref.closest(c)
+    rn = np.cross(ref.v[ref.f[face, 1]] - ref.v[ref.f[face, 0]], ref.v[ref.f[face, 2]] - ref.v[ref.f[face, 0]])
+    gap = np.einsum("ij,ij->i", q - c, rn) / (np.linalg.norm(rn, axis=1) + 1e-300)  # > 0: the face is inside
+    n = _vertex_normals(V, F)
+    w = sum(np.bincount(F[:, i], minlength=len(V)) for i in range(3))
+    g = sum(np.bincount(F[:, i], gap, len(V)) for i in range(3)) / np.maximum(w, 1)
+    before = _face_min_angles(V, F)
+    for _ in range(5):
+        W = V + factor * g[:, None] * n
+        after = _face_min_angles(W, F)
+        worse = (after < min_angle + 1.0) & (after < before)
+        if not worse.any():
+            break
+        g[np.unique(F[worse])] = 0.0
+    return Mesh(W, F)

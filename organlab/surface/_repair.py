@@ -417,7 +417,7 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     carried to the reference's vertices; the vertices are projected onto the reference itself.
     """
     from ._deviation import _Surface
-    from ._remesh import adaptive_remesh, sizing_field
+    from ._remesh import adaptive_remesh, fit_faces, sizing_field
 
     lo = min(target_mm, MIN_EDGE_VOXELS * voxel_size)
     h = sizing_field(mesh, max_mm=target_mm, min_mm=lo, tol_mm=CHORD_VOXELS * voxel_size)
@@ -426,6 +426,7 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
         _, _, face = smoothed.closest(reference.vertices)
         h = h[smoothed.f[face]].min(axis=1)
     out = _oriented(adaptive_remesh(mesh, reference, h, min_angle=min_angle, tol_mm=FLIP_VOXELS * voxel_size))
+    out = fit_faces(out, reference, min_angle=min_angle)
     rec = _step("remesh", mesh, out, method="adaptive", onto="raw" if reference is not mesh else "smoothed",
                 target_mm=float(target_mm), min_edge_mm=float(lo),
                 edge_mm_p10_p50=[round(float(np.percentile(h, 10)), 4), round(float(np.percentile(h, 50)), 4)])
