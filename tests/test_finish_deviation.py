@@ -1,12 +1,12 @@
-"""Issue 21 part 2: finish_surface states how far the finished surface lies from the raw one.
+"""Issue 21 part 2: finish_surface stays on the raw surface and states how far it lies from it.
 
-The figures are checked against a brute-force closest point (every face of the other surface), and
-on a specimen the defaults never saw: a ball (radius 12 mm) with a fin thinner than the remesh edge
-(1.2 mm thick, 1 mm voxels, 1.5 mm edges).  Measured (this session): the ball alone stays on
-its raw surface (mean 0.022, max 0.098 voxel, 27.9 degrees); with the fin, the finished surface
-loses most of it (raw to finished: mean 0.57, max 8.7 voxels; 29.7 degrees), and the figures say so.
-The issue's bound (mean 0.25, max 1 voxel) is NOT met on such a fin yet: fold cutting and remeshing
-at one edge length for the whole model remove it.
+The figures are checked against a brute-force closest point (every face of the other surface), on
+specimens the defaults never saw: a ball (radius 12 mm) alone, with a fin thinner than the remesh edge
+(1.2 mm thick, 1 mm voxels, 1.5 mm edges), with a tilted pin 1.4 mm across, and with a curved shell
+0.9 mm thick over its top.  Before the adaptive remeshing the fin was mostly removed (raw to finished:
+mean 0.57, max 8.7 voxels); now every shape is within the issue's 0.25 voxel mean and 1 voxel max
+(measured: ball 0.019 / 0.09, fin 0.021 / 0.49, pin 0.021 / 0.29, shell 0.031 / 0.46) with every angle
+>= 20 degrees (37.8, 22.7, 29.2, 22.7).
 """
 
 import numpy as np
@@ -17,13 +17,20 @@ from organlab.surface import FinishedSurface, closest_points, finish_surface, me
 from organlab.surface._deviation import _tri_closest
 
 
-def _field(fin):
+def _field(kind):
     grid = VoxelGrid(origin=(-20.0, -20.0, -20.0), voxel_size=1.0, shape=(41, 41, 41))
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
     d = np.sqrt(x**2 + y**2 + z**2) - 12.0  # signed distance to the ball, mm
-    if fin:  # a plate 1.2 mm thick, 16 mm wide, out to x = 18 mm
-        plate = np.maximum.reduce([np.abs(z) - 0.6, np.abs(y) - 8.0, x - 18.0, -x])
-        d = np.minimum(d, plate)
+    if kind in ("fin", True):  # a plate 1.2 mm thick, 16 mm wide, out to x = 18 mm
+        d = np.minimum(d, np.maximum.reduce([np.abs(z) - 0.6, np.abs(y) - 8.0, x - 18.0, -x]))
+    elif kind == "pin":  # a rod 1.4 mm across, tilted, out to 19 mm from the centre
+        a = np.array([0.8, 0.36, 0.48]) / np.linalg.norm([0.8, 0.36, 0.48])
+        s = x * a[0] + y * a[1] + z * a[2]
+        r = np.sqrt(np.maximum(x**2 + y**2 + z**2 - s**2, 0.0))
+        d = np.minimum(d, np.maximum(r - 0.7, np.maximum(s - 19.0, -s)))
+    elif kind == "shell":  # a spherical cap 0.9 mm thick (radius 17 mm about (0, 0, -4)) above z = 6 mm
+        rr = np.sqrt(x**2 + y**2 + (z + 4.0) ** 2)
+        d = np.minimum(d, np.maximum(np.abs(rr - 17.0) - 0.45, 6.0 - z))
     return np.clip(0.5 - d, 0.0, 1.0).astype(np.float32), grid  # a coverage-like field, its 0.5 level at d = 0
 
 
@@ -34,7 +41,7 @@ def _brute(points, mesh):
 
 
 def test_closest_points_match_a_brute_force_search():
-    field, grid = _field(True)
+    field, grid = _field("fin")
     raw = mesh_from_field(field, grid)
     rng = np.random.default_rng(1)
     p = raw.vertices[rng.integers(0, len(raw.vertices), 200)] + rng.normal(0.0, 0.4, (200, 3))
@@ -47,18 +54,21 @@ def test_closest_points_match_a_brute_force_search():
     assert np.mean(np.abs(d - b) < 1e-9) > 0.9
 
 
+SHAPES = ("ball", "fin", "pin", "shell")
+
+
 @pytest.fixture(scope="module")
 def finished():
     out = {}
-    for fin in (False, True):
-        field, grid = _field(fin)
+    for kind in SHAPES:
+        field, grid = _field(kind)
         raw = mesh_from_field(field, grid)
-        out[fin] = raw, finish_surface(raw, voxel_size=1.0)
+        out[kind] = raw, finish_surface(raw, voxel_size=1.0)
     return out
 
 
 def test_finish_surface_is_typed_and_reports_its_deviation(finished):
-    raw, res = finished[False]
+    raw, res = finished["ball"]
     assert isinstance(res, FinishedSurface)
     d = res.to_dict()
     assert set(d) >= {"steps", "raw", "final", "watertight", "volume_change_pct", "deviation"}
@@ -69,22 +79,50 @@ def test_finish_surface_is_typed_and_reports_its_deviation(finished):
     brute = _brute(sub, raw)
     assert res.deviation["finished_to_raw"]["max_voxels"] >= brute.max() - 1e-6
     assert res.deviation == surface_deviation(res.mesh, raw, voxel_size=1.0)
-    # a smooth ball stays on its raw surface: measured mean 0.022, max 0.098 voxel
-    assert res.deviation["mean_voxels"] < 0.25 and res.deviation["max_voxels"] < 1.0
-    assert res.watertight and res.final["min_angle_deg"] >= 20.0
 
 
-def test_a_fin_thinner_than_the_remesh_edge_shows_in_the_deviation(finished):
-    raw_ball, ball = finished[False]
-    raw, res = finished[True]
-    assert res.watertight and res.final["min_angle_deg"] >= 20.0  # the FEA promises hold
-    # the raw fin's rim: raw vertices beyond the ball, how far the finished surface is from them
+def _views():
+    """Three perspective views along the axes, 6 px per mm at the centre (the fin seen face-on first)."""
+    from organlab.camera import Camera
+
+    K = np.array([[900.0, 0.0, 160.0], [0.0, 900.0, 120.0], [0.0, 0.0, 1.0]])
+    rots = (np.eye(3), np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]), np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]))
+    return [Camera(K, np.zeros(5), R, np.array([0.0, 0.0, 150.0]), (320, 240)) for R in rots]
+
+
+@pytest.mark.parametrize("kind", SHAPES)
+def test_thin_parts_stay_on_the_raw_surface(finished, kind):
+    from organlab.raster import model_mask
+
+    raw, res = finished[kind]
+    assert res.watertight and res.final["min_angle_deg"] >= 20.0  # the FEA promises (measured 22.7-37.8)
+    assert abs(res.volume_change_pct) < 0.01  # the raw volume is restored (measured < 1e-4 %)
+    # issue 21's bounds, by brute force both ways on every 5th vertex (measured: raw to finished max 0.09-0.43
+    # voxel, finished to raw max 0.05-0.15; the mean 0.02-0.03)
+    r2f, f2r = _brute(raw.vertices[::5], res.mesh), _brute(res.mesh.vertices[::5], raw)
+    assert r2f.mean() < 0.25 and f2r.mean() < 0.25
+    assert r2f.max() < 1.0 and f2r.max() < 1.0
+    # the report's figures cover what the brute force found (all vertices, and face centres)
+    assert res.deviation["raw_to_finished"]["max_voxels"] >= r2f.max() - 1e-3
+    assert res.deviation["max_voxels"] < 1.0 and res.deviation["mean_voxels"] < 0.25
+    # the projections against the raw surface's own: each flipped boundary pixel counts here (the plain ball:
+    # 21 px lost, 26 gained of 16 300, IoU 0.997), so this is stricter than the issue's change of IoU
+    # against a silhouette.  Measured 0.9957-0.9977, but the fin seen face-on 0.979: its rim, a crease of
+    # the raw surface 1.2 mm thick, is cut by 0.3-0.4 mm (the remesher does not follow feature lines)
+    for i, cam in enumerate(_views()):
+        a, b = model_mask(raw, cam, (240, 320)), model_mask(res.mesh, cam, (240, 320))
+        iou = (a & b).sum() / (a | b).sum()
+        assert iou > (0.975 if (kind, i) == ("fin", 0) else 0.995), (kind, i, iou)
+
+
+def test_the_fin_was_cut_before_and_is_kept_now(finished):
+    raw, res = finished["fin"]
+    # the fin's far end (x = 18 mm) is still there (before issue 21: cut back by 8.7 voxels)
+    assert res.mesh.vertices[:, 0].max() > 17.5
+    # the fin is where the surface departs most, and its worst point is within a voxel of the raw
     _, d = closest_points(raw.vertices, res.mesh)
     rim = np.linalg.norm(raw.vertices, axis=1) > 14.0
-    assert res.deviation["raw_to_finished"]["max_voxels"] == pytest.approx(d.max(), abs=1e-3)
-    # the fin is where the surface departs most: its worst point is on the fin, and worse than the ball's
-    assert d[rim].max() == pytest.approx(d.max())
-    assert res.deviation["max_voxels"] > ball.deviation["max_voxels"]
+    assert d[rim].max() == pytest.approx(d.max()) and d.max() < 1.0
 
 
 def test_the_report_states_the_deviation_and_the_worst_view_iou_change(small_session):
@@ -103,6 +141,7 @@ def test_the_report_states_the_deviation_and_the_worst_view_iou_change(small_ses
     cam, sil = rec.cameras[k], np.asarray(rec.silhouettes[k].coverage) >= 0.5
     r = model_mask(rec.raw_mesh, cam, sil.shape)
     assert rows[k]["raw_iou"] == pytest.approx((r & sil).sum() / (r | sil).sum(), abs=1e-9)
-    # 6 views of the sample at 2 mm: measured mean 0.064, max 1.99 voxels, worst view IoU change -0.0089
-    # (views/120.jpg): at 2 mm the 3 mm remesh edge rounds the neck off (the 0.002 bound is not met)
-    assert 0 < dev["mean_voxels"] < 0.25 and -0.02 < dev["worst_view_iou_change"] < 0
+    # 6 views of the sample at 2 mm: measured mean 0.021, max 0.29 voxel, worst view IoU change -0.0011
+    # (before issue 21's adaptive remeshing: 0.064, 1.99 voxels, -0.0089, the 3 mm edge rounded the neck off)
+    assert 0 < dev["mean_voxels"] < 0.25 and dev["max_voxels"] < 1.0
+    assert abs(dev["worst_view_iou_change"]) < 0.002

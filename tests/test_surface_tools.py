@@ -73,10 +73,13 @@ def test_finish_surface_repairs_a_holed_noisy_sphere():
     assert report["steps"][0]["holes_closed"] == len(boundary_loops(raw))
     assert q["min_angle_deg"] >= 20.0  # measured 29.8
     assert report["raw"]["min_angle_deg"] < 5.0  # the marching-cubes slivers are gone
-    # the noise moves the surface by about 0.35 voxel; smoothing and remeshing must not move it further
+    # the noise moves the surface by about 0.35 voxel; the finished surface stays on the raw one (issue 21), noise
+    # included: measured 0.267 mm from the sphere against the raw's 0.256 (before issue 21 the Taubin-smoothed
+    # surface was remeshed, 0.22 mm, but that also shaved thin parts off real specimens)
     d_raw = np.abs(distance_to_specimen(raw.vertices, Sphere((0, 0, 0), 20.0))).mean()
     d_out = np.abs(distance_to_specimen(out.vertices, Sphere((0, 0, 0), 20.0))).mean()
-    assert d_out < d_raw  # measured 0.22 mm against 0.26 mm
+    assert d_out < 1.1 * d_raw
+    assert report["deviation"]["mean_voxels"] < 0.25 and report["deviation"]["max_voxels"] < 1.0
     assert out.volume == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.01)
 
 
@@ -152,23 +155,25 @@ def test_obj_and_vtk_files_round_trip(tmp_path):
         assert got.is_watertight and got.volume == pytest.approx(mesh.volume, rel=1e-6)
 
 
-def test_finish_surface_clears_folds_at_half_mm_voxels():
+def test_finish_surface_keeps_a_crevice_and_a_tunnel_at_half_mm_voxels():
     # a ball with a V crevice 10 degrees wide across its top and a 0.9 mm tunnel under a 0.6 mm bridge at its
     # bottom (a handle), at 0.5 mm voxels: the surface folds there (neighbouring faces > 90 degrees apart), as the
-    # sample's hull does below 1 mm voxels; without clearing the folds the smallest angle was 14.2 degrees
+    # sample's hull does below 1 mm voxels.  Until issue 21 the folds were cut out and filled (the tunnel closed);
+    # the adaptive remeshing keeps both, with edges down to 0.35 voxel there
     grid = VoxelGrid.from_roi([-9, -9, -9], [9, 9, 9], 0.5)
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
     ball = 7.0 - np.sqrt(x**2 + y**2 + z**2)
     crevice = np.abs(x) - (z - 3.0) * np.tan(np.radians(5.0))
     tunnel = np.sqrt(x**2 + (z + 6.0) ** 2) - 0.45
     raw = mesh_from_volume(np.minimum(np.minimum(ball, crevice), tunnel), grid, level=0.0)
+    assert len(raw.vertices) - len(raw.faces) // 2 == 0  # the raw surface: one piece of genus 1
     out, report = finish_surface(raw, voxel_size=0.5)
     q = report["final"]
     assert out.is_watertight and report["watertight"]
     assert q["nonmanifold_edges"] == q["nonmanifold_vertices"] == 0
-    assert q["min_angle_deg"] >= 20.0  # measured 30.8 (34.4 with 10 remeshing iterations; 18.7 with 4)
-    # one closed piece; the handle under the bridge, narrower than two remeshing edges, is filled (genus 0)
-    assert len(out.vertices) - len(out.faces) // 2 == 2
-    assert abs(report["volume_change_pct"]) < 0.3  # measured 0.15 %, mostly Taubin smoothing of the staircase
-    folds = next(s for s in report["steps"] if s["step"] == "folds")
-    assert folds["fold_edges"][0] > 0  # the scene has folds (measured 2 edges, then 11 after the first cut)
+    assert q["min_angle_deg"] >= 20.0  # measured 30.3
+    # the tunnel is still there (genus 1), and the surface stays on the raw one (measured 0.018 / 0.23 voxel)
+    assert len(out.vertices) - len(out.faces) // 2 == 0
+    assert report["deviation"]["mean_voxels"] < 0.25 and report["deviation"]["max_voxels"] < 1.0
+    assert abs(report["volume_change_pct"]) < 0.1  # measured 0.0 % (the raw volume is restored)
+    assert [s["step"] for s in report["steps"]] == ["repair", "smooth", "remesh"]

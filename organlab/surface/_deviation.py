@@ -14,7 +14,11 @@ import math
 import numpy as np
 from numba import njit
 
+import weakref
+
 from ..mesh import Mesh
+
+_SURFACES = weakref.WeakKeyDictionary()
 
 #: Candidate triangles per query point (by centroid distance).  Marching-cubes and remeshed triangles
 #: are within a factor of a few of one size, so the nearest triangle is nearly always among the nearest
@@ -110,6 +114,14 @@ def _closest_kernel(points, v, f, cand, best, dist, face):
         dist[i] = math.sqrt(dbest)
 
 
+def _surface(mesh):
+    """The :class:`_Surface` of ``mesh``, built once per mesh (meshes are immutable)."""
+    got = _SURFACES.get(mesh)
+    if got is None:
+        got = _SURFACES[mesh] = _Surface(mesh)
+    return got
+
+
 class _Surface:
     """A mesh prepared for closest-point queries (its centroid tree built once)."""
 
@@ -178,7 +190,7 @@ def surface_deviation(finished: Mesh, raw: Mesh, *, voxel_size: float, raw_surfa
         the finished surface), over ``voxel_size``; ``finished_to_raw`` and ``raw_to_finished``:
         each direction's ``mean_voxels``, ``p99_voxels``, ``max_voxels``.
     """
-    rs = _Surface(raw) if raw_surface is None else raw_surface
+    rs = _surface(raw) if raw_surface is None else raw_surface
     fv, ff = np.asarray(finished.vertices), np.asarray(finished.faces)
     pts = np.concatenate([fv, fv[ff].mean(axis=1)])
     _, d_out, _ = rs.closest(pts)

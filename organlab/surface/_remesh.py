@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 from ..mesh import Mesh
-from ._deviation import _Surface
+from ._deviation import _Surface, _surface
 
 # ------------------------------------------------------------------ small geometry helpers
 
@@ -453,7 +453,7 @@ def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iteratio
     -------
     Mesh
     """
-    ref = _Surface(reference)
+    ref = _surface(reference)
     rsize = np.asarray(sizing, dtype=np.float64)
     V = np.array(mesh.vertices, dtype=np.float64)
     F = np.array(mesh.faces, dtype=np.int64)
@@ -601,7 +601,7 @@ def fit_faces(mesh: Mesh, reference: Mesh, *, min_angle: float = 20.0, factor: f
     offset puts the faces, not the vertices, on the reference on average, locally.  A vertex whose
     offset would leave a face of its star below ``min_angle`` (and worse than before) keeps its place.
     """
-    ref = reference if isinstance(reference, _Surface) else _Surface(reference)
+    ref = reference if isinstance(reference, _Surface) else _surface(reference)
     V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
     c = V[F].mean(axis=1)
     q, d, face = ref.closest(c)

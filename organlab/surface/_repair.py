@@ -402,10 +402,10 @@ STAIRCASE_VOXELS = 0.06
 
 def _staircase(smoothed, raw, voxel_size):
     """True when Taubin smoothing moved ``raw`` off itself as it does an occupancy's staircase."""
-    from ._deviation import _Surface
+    from ._deviation import _surface
 
-    step = max(1, len(smoothed.vertices) // 20000)
-    _, d, _ = _Surface(raw).closest(smoothed.vertices[::step])
+    step = max(1, len(smoothed.vertices) // 5000)
+    _, d, _ = _surface(raw).closest(smoothed.vertices[::step])
     return bool(d.mean() > STAIRCASE_VOXELS * voxel_size)
 
 
@@ -416,15 +416,16 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     The sizing field comes from the smoothed surface (the raw one's normals turn by whole voxel steps),
     carried to the reference's vertices; the vertices are projected onto the reference itself.
     """
-    from ._deviation import _Surface
+    from ._deviation import _Surface, _surface
     from ._remesh import adaptive_remesh, fit_faces, sizing_field
 
     lo = min(target_mm, MIN_EDGE_VOXELS * voxel_size)
     h = sizing_field(mesh, max_mm=target_mm, min_mm=lo, tol_mm=CHORD_VOXELS * voxel_size)
-    if reference is not mesh:
+    if reference is not mesh and len(reference.vertices) != len(mesh.vertices):
         smoothed = _Surface(mesh)
         _, _, face = smoothed.closest(reference.vertices)
         h = h[smoothed.f[face]].min(axis=1)
+    # else: the smoothed surface has the reference's vertices, moved: the sizing carries over by index
     out = _oriented(adaptive_remesh(mesh, reference, h, min_angle=min_angle, tol_mm=FLIP_VOXELS * voxel_size))
     out = fit_faces(out, reference, min_angle=min_angle)
     rec = _step("remesh", mesh, out, method="adaptive", onto="raw" if reference is not mesh else "smoothed",
@@ -524,7 +525,8 @@ def finish_surface(
         out, rec = smooth_mesh(out)
         steps.append(rec)
     if remesh is not None:
-        if _defects(out, 3.0 * voxel_size) <= {"duplicates", "specks", "unreferenced"}:  # closed, manifold, oriented
+        q = mesh_quality(out)
+        if not (q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"] or q["misoriented_edges"]):
             ref = repaired
             if smooth and repaired is not out and len(repaired.faces) and _staircase(out, repaired, float(voxel_size)):
                 ref = out  # an occupancy's staircase is not data: the smoothed surface is the one to stay on
