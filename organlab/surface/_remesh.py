@@ -417,20 +417,39 @@ def sizing_field(mesh: Mesh, *, max_mm: float, min_mm: float, tol_mm: float, gra
     good = l2 > (0.2 * min_mm) ** 2
     k = np.where(good, dn / np.sqrt(np.maximum(l2, 1e-300)), 0.0)
     kv = np.zeros(len(V))
-    np.maximum.at(kv, e[:, 0], k)
-    np.maximum.at(kv, e[:, 1], k)
+    _scatter_max(kv, e, k)
     with np.errstate(divide="ignore"):
         h = np.sqrt(8.0 * tol_mm / np.maximum(kv, 1e-12))
     h = np.clip(h, min_mm, max_mm)
-    ln = np.sqrt(l2)
-    for _ in range(50):
-        cap = np.minimum(h[e[:, 1]] + grade * ln, h[e[:, 0]])
-        new = h.copy()
-        np.minimum.at(new, e[:, 0], cap)
-        if np.array_equal(new, h):
-            break
-        h = new
+    _grade(h, e, np.sqrt(l2), float(grade))
     return h
+
+
+@njit(cache=True)
+def _scatter_max(out, e, k):
+    for i in range(e.shape[0]):
+        for j in range(2):
+            if k[i] > out[e[i, j]]:
+                out[e[i, j]] = k[i]
+
+
+@njit(cache=True)
+def _grade(h, e, ln, grade):
+    """``h[a] <= h[b] + grade * |ab|`` over every edge, by sweeps until nothing changes (in place)."""
+    for _ in range(200):
+        changed = False
+        for i in range(e.shape[0]):
+            a, b = e[i, 0], e[i, 1]
+            c = h[b] + grade * ln[i]
+            if c < h[a]:
+                h[a] = c
+                changed = True
+            c = h[a] + grade * ln[i]
+            if c < h[b]:
+                h[b] = c
+                changed = True
+        if not changed:
+            break
 
 
 def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iterations: int = 6, min_angle: float = 20.0,
@@ -486,13 +505,15 @@ def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iteratio
                 continue
             if nv == nv0:
                 break
+        # each sweep locks what it changed; sweeps stop when one does less than 0.1 % of the faces' worth
+        few = 1
         for _ in range(8):
             lock = ~alive[: len(alive)].copy()
-            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn, _NONE) == 0:
+            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn, _NONE) < few:
                 break
         for _ in range(4):
             lock = ~alive.copy()
-            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5), _COS_GOOD, 0.0) == 0:
+            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5), _COS_GOOD, 0.0) < few:
                 break
         V, F, H = _compact(Vb, Fb, Hb, alive, valive, nv, nf)
         V, H = _relax(V, F, H, ref, rsize, relax)
@@ -504,7 +525,7 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
     surface, collapses of their shortest edges that improve their stars, and a relaxation of their
     vertices kept only where it improves their stars' smallest angle."""
     cos_bad = math.cos(math.radians(min_angle + 1.0))
-    for r in range(int(rounds) + 4):
+    for r in range(int(rounds) + 10):
         ang = _face_min_angles(V, F)
         bad = ang < min_angle + 1.0
         if not bad.any():
@@ -516,8 +537,9 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
             ring = np.isin(F, np.unique(F[bad])).any(axis=1)
             verts = np.unique(F[ring])
             V = V.copy()
+            Fr = F[np.isin(F, verts).any(axis=1)]
             for _ in range(2):
-                V[verts] += 0.5 * (_neighbour_mean(V, F)[verts] - V[verts])
+                V[verts] += 0.5 * (_neighbour_mean(V, Fr)[verts] - V[verts])
         nv, nf = len(V), len(F)
         alive = np.ones(nf, dtype=bool)
         valive = np.ones(nv, dtype=bool)
@@ -532,12 +554,16 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
 
 
 def _face_min_angles(V, F):
-    p0, p1, p2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    d = (p1 - p0, p2 - p1, p0 - p2)
-    ln = np.stack([np.sqrt(np.einsum("ij,ij->i", x, x)) for x in d], axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = np.stack([-np.einsum("ij,ij->i", d[i], d[i - 1]) for i in range(3)], axis=1) / (ln * ln[:, [2, 0, 1]])
-    return np.degrees(np.arccos(np.clip(np.nan_to_num(c, nan=1.0).max(axis=1), -1.0, 1.0)))
+    """Smallest angle of each face, degrees."""
+    out = np.empty(len(F))
+    _min_angles(np.ascontiguousarray(V), np.ascontiguousarray(F), out)
+    return out
+
+
+@njit(cache=True)
+def _min_angles(V, F, out):
+    for f in range(F.shape[0]):
+        out[f] = math.degrees(math.acos(max(-1.0, min(1.0, _max_cos(V, F[f, 0], F[f, 1], F[f, 2])))))
 
 
 def _smart_relax(V, F, ref, bad, steps=3):
@@ -548,9 +574,10 @@ def _smart_relax(V, F, ref, bad, steps=3):
         return V
     sel = np.isin(F, verts).any(axis=1)
     fs = np.flatnonzero(sel)
+    Fs = F[fs]  # the stars of verts: their normals and centroids need no other face
     for _ in range(steps):
-        n = _vertex_normals(V, F)
-        c = _neighbour_mean(V, F)[verts] - V[verts]
+        n = _vertex_normals(V, Fs)
+        c = _neighbour_mean(V, Fs)[verts] - V[verts]
         c -= np.einsum("ij,ij->i", c, n[verts])[:, None] * n[verts]
         q = V[verts] + c if ref is None else ref.closest(V[verts] + c)[0]
         before = _star_min(V, F, fs, verts)
