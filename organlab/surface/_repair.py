@@ -1,4 +1,10 @@
-"""Repair, smoothing and isotropic remeshing with pymeshlab.
+"""Repair, smoothing and remeshing: the finished surface.
+
+A closed, manifold surface (the usual marching-cubes one, or one repair
+closed) is remeshed by :mod:`._remesh`: edges adapted to the curvature, every
+vertex on the raw surface, no fold cut out (issue 21: the former fold cutting
+shaved thin parts off real specimens).  An open or non-manifold one
+(``repair=False``) goes through pymeshlab's isotropic remeshing as before.
 
 Facts this relies on (pymeshlab 2025.7): ``meshing_close_holes``'s
 ``maxholesize`` counts boundary edges, so it is set from the measured hole
@@ -466,12 +472,20 @@ def finish_surface(
 ) -> FinishedSurface:
     """A repaired, watertight, manifold surface fit for finite-element meshing.
 
-    Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and
-    :func:`remesh_mesh` (isotropic) in that order, then a last repair when the
-    remeshing left a defect.  Before remeshing, the faces within two target
-    edges of a fold (neighbouring faces more than 90 degrees apart) are cut
-    out and the holes filled; after it, so are those of faces still below
-    ``min_angle``, and the surface is remeshed once more.
+    Runs :func:`repair_mesh`, :func:`smooth_mesh` (Taubin) and the
+    remeshing in that order.  A closed, manifold surface is remeshed
+    adaptively onto the repaired raw surface (:mod:`._remesh`): the edge is
+    ``remesh`` where the surface is flat and shorter where it curves (a
+    chord strays at most 0.1 voxel, edges down to 0.35 voxel), every vertex
+    is projected onto the raw surface, each vertex is then moved along its
+    normal by its faces' mean gap to it (the faces, not only the vertices,
+    on the data), and the few faces still below ``min_angle`` are fixed
+    locally (flips, collapses, relaxation).  The smoothed surface only
+    guides the edge lengths and the start, except for an occupancy's
+    staircase (smoothing moves it more than 0.06 voxel on average), which
+    is remeshed onto the smoothed surface.  An open surface (``repair=False``)
+    goes through pymeshlab's isotropic remeshing, folds cut out, as before.
+    With ``keep_volume``, the raw volume is restored by a uniform offset.
 
     Parameters
     ----------
@@ -484,7 +498,8 @@ def finish_surface(
         Target edge length, mm (``'auto'``: 1.5 voxels but at least
         ``min_edge_mm``; ``None``: no remeshing).
     feature_deg, min_angle : float, degrees
-        See :func:`remesh_mesh`.
+        ``min_angle``: the smallest triangle angle to reach; ``feature_deg``:
+        see :func:`remesh_mesh` (the pymeshlab path only).
     min_edge_mm : float, mm
         Smallest automatic target edge: about what one pixel of the views
         resolves at the specimen (``organlab reconstruct`` and the viewer pass
@@ -493,8 +508,9 @@ def finish_surface(
         faces, not shape (at 0.25 mm voxels: 4x the faces and twice the time
         for 0.004 mm closer to the raw surface).
     keep_volume : bool
-        After remeshing, offset the surface along its normals (by hundredths
-        of a mm) so that it encloses the input mesh's volume again.
+        After remeshing, offset the surface along its normals (by thousandths
+        to hundredths of a mm) so that it encloses the repaired raw (or, for
+        a staircase, the smoothed) surface's volume again.
 
     Returns
     -------
