@@ -425,6 +425,13 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     from ._deviation import _Surface, _surface
     from ._remesh import adaptive_remesh, fit_faces, sizing_field
 
+    # the remesher's decisions (split, collapse, flip) are discrete: its input is rounded to float32, as
+    # pymeshlab stored it, so that two runs whose calibrations differ in the last bits (OpenCV's threads:
+    # raw vertices 4e-6 mm apart) give the same mesh (tests/test_api.py's snippet against the CLI)
+    same = reference is mesh
+    mesh = _moved(Mesh(mesh.vertices.astype(np.float32).astype(np.float64), mesh.faces), mesh)
+    reference = mesh if same else _moved(Mesh(reference.vertices.astype(np.float32).astype(np.float64), reference.faces),
+                                         reference)
     lo = min(target_mm, MIN_EDGE_VOXELS * voxel_size)
     h = sizing_field(mesh, max_mm=target_mm, min_mm=lo, tol_mm=CHORD_VOXELS * voxel_size)
     if reference is not mesh and len(reference.vertices) != len(mesh.vertices):
