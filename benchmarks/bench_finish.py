@@ -11,16 +11,12 @@ silhouettes, raw and finished (the worst change).
 
     python benchmarks/bench_finish.py [--voxel-sizes 1 0.5] [--repeat 3] [--no-dino]
 
-Measured (this session, a loaded 2-core machine, CPU best of 3; main's implementation run alternately
-in the same conditions), 6 remeshing iterations: sample 1 mm 1.19-1.26 s against main's 1.68-1.83 s
-(0.70x), 19 160 faces, 23.4 degrees, deviation mean 0.03 / max 0.6-0.7 voxel, worst view IoU -0.003,
-volume +0.04 %; 0.25 mm 38.3 s CPU against main's 39.9 s, peak 1039 MB against 1031 MB (the raw mesh loaded: 141 MB), 89 044 faces, 20.2 degrees, deviation mean 0.05 / max 2.7 voxels (at 0.25 mm the
-fold and sliver cut-and-fill, not the remeshing, is most of the time).  With 4 iterations (not kept: 18.7 degrees on the crevice-and-tunnel ball of
-tests/test_surface_tools.py): 1 mm 0.68x, 0.5 mm 5.1-6.1 s against 8.7-8.9 s (0.62x), 0.25 mm 30.5 s
-CPU, peak 978 MB (the raw mesh loaded: 141 MB), 89 948 faces, 23.1 degrees, deviation mean 0.05 /
-max 2.7 voxels.  Dino 1 mm (4 iterations, 3.1 s): mean IoU 0.948 raw, 0.937 finished, worst view
--0.036, 26.1 degrees; deviation mean 0.3, max 11 voxels (thin parts of the feet shaved: issue 21's
-bound not met).
+Measured (issue 21/24, helper `finish`, a loaded 2-core machine, CPU best of 3; main at d745ade run
+alternately in the same conditions): sample 1 mm 0.73 s against 1.43 s, 20 926 faces (19 160), 21.1
+degrees (23.4), deviation mean 0.021 / max 0.33 voxel (0.032 / 0.67), worst view IoU -0.0010
+(-0.0028), volume 0.000 % (+0.042 %); dino 1 mm 1.51 s against 3.58 s, 29 702 faces (16 866), 20.9
+degrees (22.2), deviation 0.030 / 0.63 voxel (0.277 / 11.4), worst view +0.0012 (-0.0376);
+0.25 mm sample 143 500 faces, 21.1 degrees, deviation 0.022 / 0.76 voxel (0.05 / 2.7).
 """
 
 from __future__ import annotations
