@@ -133,13 +133,13 @@ class _Surface:
         self.tree = cKDTree(self.v[self.f].mean(axis=1))
         self.k = min(_K, len(self.f))
 
-    def closest(self, points):
-        """``(closest (N, 3), distance (N,), face (N,))`` for ``points`` ``(N, 3)``."""
+    def closest(self, points, k=None):
+        """``(closest (N, 3), distance (N,), face (N,))`` for ``points`` ``(N, 3)`` (among ``k`` candidate faces)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         n = len(points)
         best, dist, face = np.empty((n, 3)), np.empty(n), np.empty(n, dtype=np.int64)
         if n:
-            _, cand = self.tree.query(points, k=self.k)
+            _, cand = self.tree.query(points, k=self.k if k is None else min(k, len(self.f)))
             _closest_kernel(points, self.v, self.f, np.ascontiguousarray(cand.reshape(n, -1), dtype=np.int64), best,
                             dist, face)
         return best, dist, face

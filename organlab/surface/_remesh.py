@@ -612,7 +612,8 @@ def _relax(V, F, H, ref, rsize, relax):
     c = _neighbour_mean(V, F) - V
     c -= np.einsum("ij,ij->i", c, n)[:, None] * n
     moved = V + relax * c
-    q, dist, face = ref.closest(moved)
+    # 4 candidate faces: a relaxation step moves a vertex a fraction of an edge, the next one corrects a miss
+    q, dist, face = ref.closest(moved, k=4)
     # a vertex whose closest point is far from where it moved (another sheet of a thin part) stays
     ok = dist <= 0.5 * H
     V = np.where(ok[:, None], q, V)

@@ -25,10 +25,11 @@ from typing import Literal
 import numpy as np
 
 from ..errors import OrganlabError
-from ._deviation import surface_deviation
+from ._deviation import _Surface, _surface, surface_deviation
 from ._folds import fold_edges
 from ._mesh import Mesh
 from ._quality import _face_figures, _moved, boundary_loops, mesh_quality, triangle_angles
+from ._remesh import adaptive_remesh, fit_faces, sizing_field
 from ._voronoi import vertex_normals
 
 
@@ -408,8 +409,6 @@ STAIRCASE_VOXELS = 0.06
 
 def _staircase(smoothed, raw, voxel_size):
     """True when Taubin smoothing moved ``raw`` off itself as it does an occupancy's staircase."""
-    from ._deviation import _surface
-
     step = max(1, len(smoothed.vertices) // 5000)
     _, d, _ = _surface(raw).closest(smoothed.vertices[::step])
     return bool(d.mean() > STAIRCASE_VOXELS * voxel_size)
@@ -422,9 +421,6 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     The sizing field comes from the smoothed surface (the raw one's normals turn by whole voxel steps),
     carried to the reference's vertices; the vertices are projected onto the reference itself.
     """
-    from ._deviation import _Surface, _surface
-    from ._remesh import adaptive_remesh, fit_faces, sizing_field
-
     # the remesher's decisions (split, collapse, flip) are discrete: its input is rounded to float32, as
     # pymeshlab stored it, so that two runs whose calibrations differ in the last bits (OpenCV's threads:
     # raw vertices 4e-6 mm apart) give the same mesh (tests/test_api.py's snippet against the CLI)
