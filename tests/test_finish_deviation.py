@@ -122,10 +122,11 @@ def test_the_fin_was_cut_before_and_is_kept_now(finished):
     raw, res = finished["fin"]
     # the fin's far end (x = 18 mm) is still there (before issue 21: cut back by 8.7 voxels)
     assert res.mesh.vertices[:, 0].max() > 17.5
-    # the fin is where the surface departs most, and its worst point is within a voxel of the raw
+    # the fin (its corner where it leaves the ball included) is where the surface departs most (measured 0.49
+    # voxel there, 0.31 on the ball), and its worst point is within a voxel of the raw
     _, d = closest_points(raw.vertices, res.mesh)
-    rim = np.linalg.norm(raw.vertices, axis=1) > 14.0
-    assert d[rim].max() == pytest.approx(d.max()) and d.max() < 1.0
+    fin = (np.abs(raw.vertices[:, 2]) < 1.0) & (raw.vertices[:, 0] > 10.0)
+    assert d[fin].max() == pytest.approx(d.max()) and d.max() < 1.0
 
 
 def test_the_report_states_the_deviation_and_the_worst_view_iou_change(small_session):
