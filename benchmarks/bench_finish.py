@@ -12,10 +12,10 @@ silhouettes, raw and finished (the worst change).
     python benchmarks/bench_finish.py [--voxel-sizes 1 0.5] [--repeat 3] [--no-dino]
 
 Measured (issue 21/24, helper `finish`, a loaded 2-core machine, CPU best of 3; main at d745ade run
-alternately in the same conditions): sample 1 mm 0.73 s against 1.43 s, 20 926 faces (19 160), 21.1
-degrees (23.4), deviation mean 0.021 / max 0.33 voxel (0.032 / 0.67), worst view IoU -0.0010
-(-0.0028), volume 0.000 % (+0.042 %); dino 1 mm 1.51 s against 3.58 s, 29 702 faces (16 866), 20.9
-degrees (22.2), deviation 0.030 / 0.63 voxel (0.277 / 11.4), worst view +0.0012 (-0.0376);
+alternately in the same conditions): sample 1 mm 0.72 s against 1.40 s, 20 920 faces (19 160), 21.5
+degrees (23.4), deviation mean 0.021 / max 0.31 voxel (0.032 / 0.67), worst view IoU -0.0009
+(-0.0028), volume 0.000 % (+0.042 %); dino 1 mm 1.58 s against 3.58 s, 29 788 faces (16 866), 21.0
+degrees (22.2), deviation 0.030 / 0.63 voxel (0.277 / 11.4), worst view +0.0011 (-0.0376);
 0.25 mm sample 143 500 faces, 21.1 degrees, deviation 0.022 / 0.76 voxel (0.05 / 2.7).
 """
 
