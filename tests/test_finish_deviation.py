@@ -5,8 +5,8 @@ specimens the defaults never saw: a ball (radius 12 mm) alone, with a fin thinne
 (1.2 mm thick, 1 mm voxels, 1.5 mm edges), with a tilted pin 1.4 mm across, and with a curved shell
 0.9 mm thick over its top.  Before the adaptive remeshing the fin was mostly removed (raw to finished:
 mean 0.57, max 8.7 voxels); now every shape is within the issue's 0.25 voxel mean and 1 voxel max
-(measured: ball 0.019 / 0.09, fin 0.021 / 0.49, pin 0.021 / 0.29, shell 0.031 / 0.48) with every angle
->= 20 degrees (37.8, 22.7, 25.9, 21.7).
+(measured: ball 0.019 / 0.09, fin 0.022 / 0.49, pin 0.021 / 0.32, shell 0.031 / 0.48) with every angle
+>= 20 degrees (38.0, 22.7, 29.1, 21.7).
 """
 
 import numpy as np
@@ -95,7 +95,7 @@ def test_thin_parts_stay_on_the_raw_surface(finished, kind):
     from organlab.raster import model_mask
 
     raw, res = finished[kind]
-    assert res.watertight and res.final["min_angle_deg"] >= 20.0  # the FEA promises (measured 21.7-37.8)
+    assert res.watertight and res.final["min_angle_deg"] >= 20.0  # the FEA promises (measured 21.7-38.0)
     assert abs(res.volume_change_pct) < 0.01  # the raw volume is restored (measured < 1e-4 %)
     # issue 21's bounds, by brute force both ways on every 5th vertex (measured: raw to finished max 0.09-0.43
     # voxel, finished to raw max 0.05-0.15; the mean 0.02-0.03)

@@ -171,7 +171,7 @@ def test_finish_surface_keeps_a_crevice_and_a_tunnel_at_half_mm_voxels():
     q = report["final"]
     assert out.is_watertight and report["watertight"]
     assert q["nonmanifold_edges"] == q["nonmanifold_vertices"] == 0
-    assert q["min_angle_deg"] >= 20.0  # measured 30.3
+    assert q["min_angle_deg"] >= 20.0  # measured 28.1
     # the tunnel is still there (genus 1), and the surface stays on the raw one (measured 0.018 / 0.23 voxel)
     assert len(out.vertices) - len(out.faces) // 2 == 0
     assert report["deviation"]["mean_voxels"] < 0.25 and report["deviation"]["max_voxels"] < 1.0
