@@ -71,7 +71,7 @@ def test_finish_surface_repairs_a_holed_noisy_sphere():
     assert out.is_watertight and report["watertight"]
     assert q["nonmanifold_edges"] == q["nonmanifold_vertices"] == q["boundary_edges"] == 0
     assert report["steps"][0]["holes_closed"] == len(boundary_loops(raw))
-    assert q["min_angle_deg"] >= 20.0  # measured 29.8
+    assert q["min_angle_deg"] >= 20.0  # measured 29.7
     assert report["raw"]["min_angle_deg"] < 5.0  # the marching-cubes slivers are gone
     # the noise moves the surface by about 0.35 voxel; the finished surface stays on the raw one (issue 21), noise
     # included: measured 0.267 mm from the sphere against the raw's 0.256 (before issue 21 the Taubin-smoothed
@@ -79,7 +79,7 @@ def test_finish_surface_repairs_a_holed_noisy_sphere():
     d_raw = np.abs(distance_to_specimen(raw.vertices, Sphere((0, 0, 0), 20.0))).mean()
     d_out = np.abs(distance_to_specimen(out.vertices, Sphere((0, 0, 0), 20.0))).mean()
     assert d_out < 1.1 * d_raw
-    assert report["deviation"]["mean_voxels"] < 0.25 and report["deviation"]["max_voxels"] < 1.0
+    assert report["deviation"]["mean_voxels"] < 0.25 and report["deviation"]["max_voxels"] < 1.0  # measured 0.043 / 0.25
     assert out.volume == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.01)
 
 
