@@ -647,3 +647,15 @@ def fit_faces(mesh: Mesh, reference: Mesh, *, min_angle: float = 20.0, factor: f
             break
         g[np.unique(F[worse])] = 0.0
     return Mesh(W, F)
+
+
+def fix_slivers(mesh: Mesh, reference: Mesh, *, target_mm: float, min_angle: float = 20.0, tol_mm: float = 0.1,
+                rounds: int = 8, flip_deg: float = 35.0, turn_deg: float = 60.0) -> Mesh:
+    """The local clean-up of :func:`adaptive_remesh`'s last step, on its own: faces below ``min_angle`` fixed
+    by flips within ``tol_mm`` of ``reference``, collapses and relaxation onto it (knife edges flattened)."""
+    V = np.array(mesh.vertices, dtype=np.float64)
+    F = np.array(mesh.faces, dtype=np.int64)
+    H = np.full(len(V), float(target_mm))
+    return _fix_slivers(V, F, H, _surface(reference), None, min_angle=min_angle, tol_mm=tol_mm,
+                        cos_fold=math.cos(math.radians(flip_deg)), cos_turn=math.cos(math.radians(turn_deg)),
+                        rounds=rounds)
