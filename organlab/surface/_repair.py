@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import OrganlabError
-from ._deviation import _Surface, _surface, surface_deviation
+from ._deviation import _SURFACES, _Surface, _surface, surface_deviation
 from ._folds import fold_edges
 from ._mesh import Mesh
 from ._quality import _face_figures, _moved, boundary_loops, mesh_quality, triangle_angles
@@ -574,6 +574,7 @@ def finish_surface(
             steps.append(rec)
     raw, final = mesh_quality(mesh), mesh_quality(out)
     deviation = surface_deviation(out, repaired, voxel_size=float(voxel_size))
+    _SURFACES.clear()  # the closest-point trees (0.25 mm: ~100 MB for the raw surface) are not kept past the call
     if mesh.vertex_colors is not None:
         from scipy.spatial import cKDTree
 
