@@ -59,7 +59,7 @@ __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_ME
 
 METHODS = ("hull", "coloring", "space_carving", "photo")
 HULL_METHODS = ("subvoxel", "thesis")
-#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments by subtraction.
+#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments itself.
 JOINT_MODES = ("auto", "on", "off")
 
 
@@ -107,8 +107,8 @@ class Settings:
         (:meth:`organlab.silhouette.SilhouetteModel.joint`: adds what the
         other views require and the colour does not deny, drops what no
         view explains); 'auto': when the session has >= 8 views whose
-        silhouettes it finds by background subtraction (not for a session
-        keyed against a ``backdrop``: measured worse on the dino photos).
+        silhouettes it finds itself (subtraction or keying; keyed views
+        get its edge rule and removal, not its region rule).
         Default 'off': on the sample it changes 4 px and costs about 3 s CPU
         at 1 mm; see docs/silhouettes.md for what it recovers elsewhere.
 
