@@ -26,6 +26,8 @@ _PEAK = 0.1  # NCC: how far below the best score the peak's front is taken
 _MIN_STD = 2.0  # grey levels: windows flatter than this (either image) give no evidence
 _NEIGHBOUR_DEG = (12.0, 40.0)  # angles between a view and the views it is compared with
 _MAX_NEIGHBOURS = 4
+_CONFIRM = -2.0  # experimental: third pair's NCC at the best depth, where three pairs are valid
+_MIN_TEXTURE = 0.0  # experimental: grey std of the reference window around its best-fit plane
 
 
 def _neighbours(cameras, centre):
@@ -69,6 +71,19 @@ def _window_ncc(ref, warped, valid_ref, window):
     return np.where(good, ncc, np.nan)
 
 
+def _plane_residual_std(img, window):
+    """Grey std of each ``window`` x ``window`` patch of ``img (h, w)`` around its least-squares plane."""
+    img = np.ascontiguousarray(img, np.float32)
+    r = window // 2
+    x = np.arange(-r, r + 1, dtype=np.float32)
+    kx = np.ascontiguousarray(np.tile(x, (window, 1)) / window**2)
+    mx = cv2.filter2D(img, -1, kx, borderType=cv2.BORDER_CONSTANT)
+    my = cv2.filter2D(img, -1, np.ascontiguousarray(kx.T), borderType=cv2.BORDER_CONSTANT)
+    m = _box(img, window)
+    v = _box(img * img, window) - m * m - (mx * mx + my * my) / float((x * x).mean())
+    return np.sqrt(np.maximum(v, 0.0))
+
+
 def _top2(ncc):
     """Mean of the two best view pairs' NCC, ``(S, h, w)``; NaN where fewer than two pairs are valid."""
     a = np.where(np.isfinite(ncc), ncc, -np.inf)
@@ -101,7 +116,8 @@ def _view_evidence(i, nbrs, grey, fg, cams_packed, cameras, occ, grid, lo, hi, d
     warped = out.reshape(J, n_steps, h, w)
     ref = grey[i, y0:y1, x0:x1]
     valid_ref = (fg[i, y0:y1, x0:x1] != 0) & np.isfinite(t_s.reshape(h, w))
-    score = _top2(_window_ncc(ref, warped, valid_ref, window))  # (S, h, w)
+    ncc = _window_ncc(ref, warped, valid_ref, window)
+    score = _top2(ncc)  # (S, h, w)
     s0 = score[0]
     filled = np.where(np.isfinite(score), score, -np.inf)
     best = np.argmax(filled, axis=0)
@@ -113,7 +129,14 @@ def _view_evidence(i, nbrs, grey, fg, cams_packed, cameras, occ, grid, lo, hi, d
     beyond = (steps <= best[None]) & ~near
     front = np.where(beyond.any(0), (np.where(beyond, steps, -1).max(0) + 1), 0)
     free_to = front * dt - margin
-    ok = (np.isfinite(s0) & (s_best >= _MIN_SCORE) & (s_best - s0 >= threshold) & (free_to > 0)).ravel()
+    ok = np.isfinite(s0) & (s_best >= _MIN_SCORE) & (s_best - s0 >= threshold) & (free_to > 0)
+    if _CONFIRM > -1 and len(ncc) > 2:
+        at = np.take_along_axis(ncc, np.broadcast_to(best[None, None], (len(ncc), 1) + best.shape), 1)[:, 0]
+        third = -np.sort(-np.where(np.isfinite(at), at, -np.inf), axis=0)[2]
+        ok &= ~np.isfinite(third) | (third >= _CONFIRM)
+    if _MIN_TEXTURE > 0:
+        ok &= _plane_residual_std(ref, window) >= _MIN_TEXTURE
+    ok = ok.ravel()
     if not ok.any():
         return None
     t_from = t_s[ok]
