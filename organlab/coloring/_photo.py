@@ -26,8 +26,7 @@ _PEAK = 0.1  # NCC: how far below the best score the peak's front is taken
 _MIN_STD = 2.0  # grey levels: windows flatter than this (either image) give no evidence
 _NEIGHBOUR_DEG = (12.0, 40.0)  # angles between a view and the views it is compared with
 _MAX_NEIGHBOURS = 4
-_CONFIRM = -2.0  # experimental: third pair's NCC at the best depth, where three pairs are valid
-_MIN_TEXTURE = 0.0  # experimental: grey std of the reference window around its best-fit plane
+_CONFIRM = 0.5  # NCC: where three or more pairs are valid at the best depth, the third best must match too
 
 
 def _neighbours(cameras, centre):
@@ -69,19 +68,6 @@ def _window_ncc(ref, warped, valid_ref, window):
     with np.errstate(invalid="ignore", divide="ignore"):
         ncc = cov / np.sqrt(vr * vw)
     return np.where(good, ncc, np.nan)
-
-
-def _plane_residual_std(img, window):
-    """Grey std of each ``window`` x ``window`` patch of ``img (h, w)`` around its least-squares plane."""
-    img = np.ascontiguousarray(img, np.float32)
-    r = window // 2
-    x = np.arange(-r, r + 1, dtype=np.float32)
-    kx = np.ascontiguousarray(np.tile(x, (window, 1)) / window**2)
-    mx = cv2.filter2D(img, -1, kx, borderType=cv2.BORDER_CONSTANT)
-    my = cv2.filter2D(img, -1, np.ascontiguousarray(kx.T), borderType=cv2.BORDER_CONSTANT)
-    m = _box(img, window)
-    v = _box(img * img, window) - m * m - (mx * mx + my * my) / float((x * x).mean())
-    return np.sqrt(np.maximum(v, 0.0))
 
 
 def _top2(ncc):
@@ -130,12 +116,10 @@ def _view_evidence(i, nbrs, grey, fg, cams_packed, cameras, occ, grid, lo, hi, d
     front = np.where(beyond.any(0), (np.where(beyond, steps, -1).max(0) + 1), 0)
     free_to = front * dt - margin
     ok = np.isfinite(s0) & (s_best >= _MIN_SCORE) & (s_best - s0 >= threshold) & (free_to > 0)
-    if _CONFIRM > -1 and len(ncc) > 2:
+    if len(ncc) > 2:  # the depth confirmed by a third pair wherever one is valid there
         at = np.take_along_axis(ncc, np.broadcast_to(best[None, None], (len(ncc), 1) + best.shape), 1)[:, 0]
         third = -np.sort(-np.where(np.isfinite(at), at, -np.inf), axis=0)[2]
         ok &= ~np.isfinite(third) | (third >= _CONFIRM)
-    if _MIN_TEXTURE > 0:
-        ok &= _plane_residual_std(ref, window) >= _MIN_TEXTURE
     ok = ok.ravel()
     if not ok.any():
         return None
@@ -155,10 +139,13 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
     ``window`` x ``window`` patches around them compared with the view's own
     by normalised cross-correlation (blind to exposure and shading).  A
     depth's score is the mean NCC of its two best view pairs (so at least
-    two pairs must agree; occluded or highlighted pairs drop out).  Where the
-    best depth scores at least 0.5 and ``threshold`` more than the surface
-    itself, the ray is free from the surface to one voxel before that depth:
-    its voxels get a vote from this view.  Voxels with votes from
+    two pairs must agree; occluded or highlighted pairs drop out); where a
+    third pair is valid at the best depth it must match too (NCC >= 0.5):
+    smooth shading and sparse spots match two pairs by chance far more often
+    than three.  Where the best depth scores at least 0.5 and ``threshold``
+    more than the surface itself, the ray is free from the surface to one
+    voxel before the front of that depth's peak: its voxels get a vote from
+    this view.  Voxels with votes from
     ``min_views`` views are carved; the next pass starts from the carved
     surface (visibility from the current surface); finally the silhouette
     guard puts back every voxel a silhouette needs.
@@ -185,7 +172,7 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
         Sweeps; each starts from the previous one's carved surface.
     margin : float, mm, optional
         How far in front of the matched depth a free ray stops (along the
-        ray); default 1.5 voxels (carving right to the surface would cut
+        ray); default 1 voxel (carving right to the surface would cut
         the voxels the surface crosses, which the hull keeps).
     guard : bool
         Silhouette guard (see :func:`color_voxels`).
@@ -240,7 +227,7 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
     # depth step: the distance that moves a point by about 0.5 px in a neighbour 25 degrees away
     px_mm = min(c.K[0, 0] / np.linalg.norm(c.center - centre) for c in cameras)
     dt = min(0.5 * h, 0.5 / (px_mm * np.sin(np.radians(25.0))))
-    margin = 1.5 * h if margin is None else float(margin)
+    margin = 1.0 * h if margin is None else float(margin)
     total = passes * n_views
     done = 0
     carved_per_pass = []
