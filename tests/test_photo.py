@@ -193,6 +193,6 @@ def test_dino_photo_keeps_the_silhouettes():
 
     # the guard keeps every silhouette pixel the hull explained, so carving can only tighten the model
     assert iou(r.occupancy) > iou(hull) - 0.005
-    # measured at 1 mm (benchmarks/bench_photo.py dino): IoU 0.9679 vs the hull's 0.9674, 15.6 % of the
-    # 16-view hull's volume carved (20 590 voxels put back by the guard); not a hollowed model
+    # measured at 1 mm (benchmarks/bench_photo.py dino): IoU 0.9678 vs the hull's 0.9674, 15.6 % of the
+    # 16-view hull's volume carved (21 831 voxels put back by the guard); not a hollowed model
     assert 0.75 * grid.volume_of(hull) < grid.volume_of(r.occupancy) < grid.volume_of(hull)
