@@ -14,6 +14,7 @@ from ..masks import Silhouette, as_arrays
 from ..session import Session
 from . import _model
 from ._model import Model, Problem
+from ._outline import edge_coverage
 from ._tangents import outline_rays, pad_rays
 
 MODES = ("auto", "on", "off")
@@ -137,7 +138,8 @@ def _f(v):
 
 def refine_poses(session: Session | None, calibration: Calibration | None, silhouettes: Sequence[Silhouette | np.ndarray],
                  *, mode: str = "auto", cameras: Sequence[Camera] | None = None,
-                 names: Sequence[str] | None = None) -> PoseRefinement:
+                 names: Sequence[str] | None = None, images: Sequence[np.ndarray | None] | None = None,
+                 background: np.ndarray | None = None) -> PoseRefinement:
     """Correct the views' poses so that every silhouette agrees with the others.
 
     Parameters
@@ -158,6 +160,13 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
         The views' cameras before refinement (default ``calibration.cameras(session)``).
     names : list of str, optional
         View names for the report.
+    images : sequence of (H, W, 3) uint8 or None, optional
+        The views' images, with ``background`` (the empty scene's model,
+        :attr:`organlab.silhouette.SilhouetteModel.background`): the outlines
+        the tangents read are then re-estimated colour by colour on the
+        silhouettes' edges (:func:`organlab.poses._outline.edge_coverage`), for
+        views found by background subtraction; without them (or for keyed and
+        given silhouettes) the silhouettes' own coverage is read.
 
     Returns
     -------
@@ -186,9 +195,28 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
     covs = as_arrays(list(silhouettes), "coverage")
     if len(covs) != len(cameras):
         raise ValueError(f"got {len(covs)} silhouettes but {len(cameras)} cameras: give one silhouette per view")
+    if images is not None:
+        if len(images) != len(covs):
+            raise ValueError(f"got {len(images)} images but {len(covs)} silhouettes: give one image per view (or None)")
+        if background is None:
+            raise ValueError("images need their background (the empty scene's model)")
+        covs = _outlines(list(silhouettes), covs, images, np.asarray(background))
     done = _refine(session, calibration, covs, cameras, mode, names)
     done.seconds = time.perf_counter() - t_start
     return done
+
+
+def _outlines(silhouettes, covs, images, background):
+    """The coverage the tangents read: re-estimated on the edges of subtracted views (:mod:`._outline`)."""
+    out = []
+    for sil, cov, img in zip(silhouettes, covs, images):
+        subtracted = sil.source == "subtraction" if isinstance(sil, Silhouette) else True
+        if img is None or not subtracted or np.shape(img) != np.shape(background):
+            out.append(cov)
+            continue
+        mask = sil.mask if isinstance(sil, Silhouette) else np.asarray(cov) >= 0.5
+        out.append(edge_coverage(img, background, mask))
+    return out
 
 
 def _build_model(session, calibration, cameras):
