@@ -74,7 +74,7 @@ def main(argv=None):
     from organlab.calibration import calibration_for
     from organlab.poses import refine_poses
     from organlab.session import load_session
-    from organlab.silhouette import silhouettes
+    from organlab.silhouette import SilhouetteModel
     from organlab.synthetic import make_session
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -99,11 +99,12 @@ def main(argv=None):
         if audit:
             with_audit(s, truth)
         cal, _ = calibration_for(s)
-        sils = silhouettes(s)
+        model = SilhouetteModel.from_session(s)
+        sils = model.silhouettes()
         times = []
         for _ in range(max(1, a.repeat)):
             t0, c0 = time.perf_counter(), time.process_time()
-            r = refine_poses(s, cal, sils, mode="on")
+            r = refine_poses(s, cal, sils, mode="on", images=model.images, background=model.background)
             times.append((time.perf_counter() - t0, time.process_time() - c0))
         wall, cpu = min(times)
         print(f"{name}: {wall:.2f} s wall, {cpu:.2f} s CPU; largest view residual before {np.nanmax(r.before_px):.3f} px; {r.reason}")
