@@ -25,7 +25,7 @@ from organlab.camera import Camera
 from organlab.grid import VoxelGrid
 from organlab.poses import refine_poses
 from organlab.session import load_session
-from organlab.silhouette import silhouettes
+from organlab.silhouette import SilhouetteModel
 from organlab.surface import mesh_from_field
 from organlab.synthetic import Cylinder, make_session
 
@@ -42,11 +42,13 @@ def _scene(tmp_path_factory, name, **kw):
     make_session(out, **SMALL, **kw)
     s = load_session(out)
     cal, _ = calibration_for(s)
-    sils = silhouettes(s)
+    model = SilhouetteModel.from_session(s)
+    sils = model.silhouettes()
     truth = json.loads((out / "truth.json").read_text())
     cam = cal.camera
     true_cams = [Camera(cam.K, cam.dist, np.array(v["R"]), np.array(v["t"]), image_size=cam.image_size) for v in truth["views"]]
-    return s, cal, sils, truth, true_cams
+    # the images and the empty scene, as the engine passes them: sub-pixel outlines for the tangents
+    return s, cal, sils, truth, true_cams, dict(images=model.images, background=model.background)
 
 
 def _volume(s, sils, cams):
@@ -74,8 +76,8 @@ def test_off_and_bad_input():
 
 @pytest.mark.slow
 def test_bumped_camera_is_corrected(tmp_path_factory):
-    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "bump", seed=3, specimen="aaa-7", camera_bump=BUMP)
-    r = refine_poses(s, cal, sils, mode="auto")
+    s, cal, sils, truth, true_cams, kw = _scene(tmp_path_factory, "bump", seed=3, specimen="aaa-7", camera_bump=BUMP)
+    r = refine_poses(s, cal, sils, mode="auto", **kw)
     assert r.flagged and r.accepted, r.reason
     before = max(_rot_err_deg(c.R, t.R) for c, t in zip(cal.cameras(s), true_cams))
     after = max(_rot_err_deg(c.R, t.R) for c, t in zip(r.cameras, true_cams))
@@ -102,8 +104,8 @@ def test_bumped_camera_is_corrected(tmp_path_factory):
 
 @pytest.mark.slow
 def test_slid_specimen_is_found_and_one_model_built(tmp_path_factory):
-    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "slip", seed=4, specimen="aaa-7", slip=SLIP)
-    r = refine_poses(s, cal, sils, mode="auto")
+    s, cal, sils, truth, true_cams, kw = _scene(tmp_path_factory, "slip", seed=4, specimen="aaa-7", slip=SLIP)
+    r = refine_poses(s, cal, sils, mode="auto", **kw)
     assert r.accepted and r.slip is not None, r.reason
     # measured: view 12, (1.23, -0.84) mm, the slip alone refined (the camera held)
     assert abs(r.slip["view"] - 12) <= 1
@@ -116,10 +118,10 @@ def test_slid_specimen_is_found_and_one_model_built(tmp_path_factory):
 
 @pytest.mark.slow
 def test_correct_session_is_left_alone(tmp_path_factory):
-    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "ok", seed=1, specimen="aaa-7")
+    s, cal, sils, truth, true_cams, kw = _scene(tmp_path_factory, "ok", seed=1, specimen="aaa-7")
     cams = cal.cameras(s)
     for mode in ("auto", "on"):
-        r = refine_poses(s, cal, sils, mode=mode)
+        r = refine_poses(s, cal, sils, mode=mode, **kw)
         # measured: largest view 0.23 px (auto skips); 'on': left-out views 0.140 -> 0.128 px, refused
         assert not r.accepted, r.reason
         assert all(np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t) for a, b in zip(r.cameras, cams))
@@ -129,9 +131,9 @@ def test_correct_session_is_left_alone(tmp_path_factory):
 def test_symmetric_specimen_with_a_mislabelled_view_is_refused(tmp_path_factory):
     n = SMALL["n_views"]
     true_angles = 360.0 * np.arange(n) / n + np.where(np.arange(n) == 7, 15.0, 0.0)
-    s, cal, sils, truth, true_cams = _scene(tmp_path_factory, "cyl", seed=9, specimen=Cylinder(radius=25.0, z1=90.0),
+    s, cal, sils, truth, true_cams, kw = _scene(tmp_path_factory, "cyl", seed=9, specimen=Cylinder(radius=25.0, z1=90.0),
                                             true_angles_deg=true_angles)
-    r = refine_poses(s, cal, sils, mode="on")
+    r = refine_poses(s, cal, sils, mode="on", **kw)
     # the cylinder hides its angles: nothing to gain from the left-out views (0.136 -> 0.137 px)
     assert not r.accepted and r.reason.startswith("refused") and "rotation-symmetric" in r.reason
     assert r.to_dict()["gate"]["accepted"] is False
