@@ -1014,8 +1014,12 @@ class Engine:
         cal = out["calibration"]
         if self.session is None or len(self.views) != len(self.session.views):
             return None  # the table angles and the gate need the whole turn
+        # the images and the empty scene that made the silhouettes: sub-pixel outlines for the tangents
+        model = self._model if self._silhouettes is None else None
+        keyed = model is None or model.keyed or model.background is None
         return refine_poses(self.session, cal.calibration, out["silhouettes"], mode=settings.refine_poses,
-                            cameras=cal.cameras, names=list(self.names))
+                            cameras=cal.cameras, names=list(self.names), images=None if keyed else model.images,
+                            background=None if keyed else model.background)
 
     def _run_carving(self, settings, clock, out, notify):
         sils, cameras = out["silhouettes"], _cameras(out)
