@@ -41,11 +41,12 @@ demo: $(STAMP)
 	$(BIN)/organlab reconstruct sample_sessions/aaa_phantom --out demo_out --voxel-size 1 --picture
 
 # The suite on TEST_WORKERS processes (pytest-xdist; the machine's 2 cores by default), each test file whole on one
-# of them (--dist loadfile: a file's module fixtures are made once).  TEST_WORKERS=0 runs it in this process.
+# of them (--dist loadfile: a file's module fixtures are made once), the longest files first (tests/conftest.py's
+# FILE_SECONDS; --no-loadscope-reorder keeps that order).  TEST_WORKERS=0 runs it in this process.
 TEST_WORKERS ?= 2
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_carving.py

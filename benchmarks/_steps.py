@@ -11,7 +11,7 @@ from, and with ``--tracemalloc`` the peak of the Python allocations during it (n
 included; tracing slows the run, so its times are not the command's).
 
 The steps are the stage functions the engine calls, wrapped where ``organlab.engine`` (and the
-CLI) look them up: nothing of organlab is changed.  ``imports`` is the import of the CLI module;
+CLI) look them up: nothing of organlab is changed.  ``imports`` is the import of the CLI module and the engine;
 ``start-up`` the interpreter's own start (measured by the caller: the process's wall time minus
 this script's); ``other`` what no step covers.
 """
@@ -89,7 +89,8 @@ def main():
 
         tracemalloc.start()
     steps = Steps(trace)
-    mod = steps.run("imports", __import__, "organlab.cli", fromlist=["main"])
+    # the CLI module and the engine it runs (imported by the command's first resolve): every import before the run
+    mod = steps.run("imports", lambda: (__import__("organlab.engine"), __import__("organlab.cli", fromlist=["main"]))[1])
     from organlab import cli, engine
 
     for attr, name in [

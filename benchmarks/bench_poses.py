@@ -7,6 +7,7 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
 * ``ok_aaa7``: nothing went wrong;
 * ``drift_aaa7`` / ``drift_dented``: the table lost steps, the true angles drift
   linearly to +3 degrees over the turn plus 0.3 degrees of jitter per stop;
+* ``driftb_dented``: the same with another render (seed) and another drift;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
 * ``drift_dented+audit`` / ``drift_aaa7+audit``: the drifting tables with the capture's angle
@@ -52,6 +53,8 @@ def scenes(n=36, size=(640, 480)):
         "bump_aaa7": dict(base, seed=3, specimen="aaa-7", camera_bump={"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)}),
         "slip_aaa7": dict(base, seed=4, specimen="aaa-7", slip={"view": n // 2, "translation_mm": (1.2, -0.9), "rotation_deg": 0.0}),
         "drift_dented": dict(base, seed=6, specimen="dented", true_angles_deg=drift_angles(n, 8)),
+        # another render and another drift, for the defaults chosen on the one above
+        "driftb_dented": dict(base, seed=16, specimen="dented", true_angles_deg=drift_angles(n, 18)),
     }
 
 
@@ -74,7 +77,7 @@ def main(argv=None):
     from organlab.calibration import calibration_for
     from organlab.poses import refine_poses
     from organlab.session import load_session
-    from organlab.silhouette import silhouettes
+    from organlab.silhouette import SilhouetteModel
     from organlab.synthetic import make_session
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -99,11 +102,12 @@ def main(argv=None):
         if audit:
             with_audit(s, truth)
         cal, _ = calibration_for(s)
-        sils = silhouettes(s)
+        model = SilhouetteModel.from_session(s)
+        sils = model.silhouettes()
         times = []
         for _ in range(max(1, a.repeat)):
             t0, c0 = time.perf_counter(), time.process_time()
-            r = refine_poses(s, cal, sils, mode="on")
+            r = refine_poses(s, cal, sils, mode="on", images=model.images, background=model.background)
             times.append((time.perf_counter() - t0, time.process_time() - c0))
         wall, cpu = min(times)
         print(f"{name}: {wall:.2f} s wall, {cpu:.2f} s CPU; largest view residual before {np.nanmax(r.before_px):.3f} px; {r.reason}")

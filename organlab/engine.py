@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -42,7 +42,7 @@ from .checks import model_warnings, roi_faces_touched
 from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
 from .calibration import calibration_for
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
-from .coloring import PIPELINE_OPTIONS, color_voxels, photo_carve, report_entry
+from .coloring import DEFAULT_PHOTO_THRESHOLD, PIPELINE_OPTIONS, color_voxels, photo_carve, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, available_memory, check_grid_memory, check_image_memory
@@ -55,12 +55,46 @@ from .surface import (color_vertices, finish_surface, is_aaa_session, measure, m
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
-           "ChecksStage", "LiveHull", "run", "pixel_footprint"]
+           "ChecksStage", "LiveHull", "run", "pixel_footprint", "ColorThresholdRange", "color_threshold_range"]
 
 METHODS = ("hull", "coloring", "space_carving", "photo")
 HULL_METHODS = ("subvoxel", "thesis")
-#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments by subtraction.
+#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments itself.
 JOINT_MODES = ("auto", "on", "off")
+
+
+class ColorThresholdRange(NamedTuple):
+    """What a face offers for ``Settings.color_threshold`` under one method (a slider's bounds, step, unit).
+
+    ``default`` is the value "automatic" stands for when it is fixed (``'photo'``'s NCC gain), None when
+    the colouring measures it per run (``'coloring'``, ``'space_carving'``).
+    """
+
+    low: float
+    high: float
+    step: float
+    unit: str
+    default: float | None
+
+
+def color_threshold_range(method: str) -> ColorThresholdRange:
+    """The useful range of ``Settings.color_threshold`` for a colouring ``method``.
+
+    ``'coloring'`` and ``'space_carving'`` take a standard deviation in grey
+    levels (1-60); ``'photo'`` takes an NCC gain (0.05-1, default
+    :data:`organlab.coloring.DEFAULT_PHOTO_THRESHOLD`: 0.5x-2x of it lies well
+    inside).  ``'hull'`` has no colour threshold: SettingsError.
+
+    Examples
+    --------
+    >>> color_threshold_range("photo").default, color_threshold_range("coloring").unit
+    (0.25, 'grey levels')
+    """
+    if method == "photo":
+        return ColorThresholdRange(0.05, 1.0, 0.01, "NCC gain", float(DEFAULT_PHOTO_THRESHOLD))
+    if method in ("coloring", "space_carving"):
+        return ColorThresholdRange(1.0, 60.0, 0.5, "grey levels", None)
+    raise SettingsError("method", f"has no colour threshold unless one of {METHODS[1:]}, got {method!r}")
 
 
 class Cancelled(Exception):
@@ -107,8 +141,8 @@ class Settings:
         (:meth:`organlab.silhouette.SilhouetteModel.joint`: adds what the
         other views require and the colour does not deny, drops what no
         view explains); 'auto': when the session has >= 8 views whose
-        silhouettes it finds by background subtraction (not for a session
-        keyed against a ``backdrop``: measured worse on the dino photos).
+        silhouettes it finds itself (subtraction or keying; keyed views
+        get its edge rule and removal, not its region rule).
         Default 'off': on the sample it changes 4 px and costs about 3 s CPU
         at 1 mm; see docs/silhouettes.md for what it recovers elsewhere.
 
@@ -980,8 +1014,12 @@ class Engine:
         cal = out["calibration"]
         if self.session is None or len(self.views) != len(self.session.views):
             return None  # the table angles and the gate need the whole turn
+        # the images and the empty scene that made the silhouettes: sub-pixel outlines for the tangents
+        model = self._model if self._silhouettes is None else None
+        keyed = model is None or model.keyed or model.background is None
         return refine_poses(self.session, cal.calibration, out["silhouettes"], mode=settings.refine_poses,
-                            cameras=cal.cameras, names=list(self.names))
+                            cameras=cal.cameras, names=list(self.names), images=None if keyed else model.images,
+                            background=None if keyed else model.background)
 
     def _run_carving(self, settings, clock, out, notify):
         sils, cameras = out["silhouettes"], _cameras(out)

@@ -38,6 +38,10 @@ FORMAT = "organlab.session/1"
 #: Images above this many pixels are checked at load from their headers only (not decoded twice).
 _DECODE_CHECK_MAX_PX = 50_000_000
 
+#: The views', masks' and background frames' images decoded by the load's check are kept for the run's
+#: first read of each (so a run decodes each image once) while they take at most this many bytes in all.
+_KEEP_DECODED_BYTES = 160_000_000
+
 #: Largest roi coordinate accepted, mm: an roi of 1e308 mm overflowed the grid's shape.
 ROI_LIMIT_MM = 1e5
 
@@ -100,6 +104,14 @@ class Session:
     raw: dict = field(default_factory=dict)
     backdrop: dict | None = None  # {"color": (3,) float RGB | "border" | "frames", "shadows": bool}
     notes: tuple = ()  # of str: what loading corrected (e.g. a re-orthonormalised rotation)
+    # path -> (file signature, decoded image) from the load's check, given to the first read (see _check_images)
+    _decoded: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __getstate__(self):  # a pickled session (sent to a worker) leaves its decoded images behind
+        return {**self.__dict__, "_decoded": {}}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
 
     @property
     def json_path(self) -> Path:
@@ -118,6 +130,9 @@ class Session:
 
     def read(self, path: str | Path, *, key: str = "image", grey: bool = False) -> np.ndarray:
         """Read one of the session's images, checking it exists and has the session's size."""
+        kept = self._decoded.pop(str(path), None) if self._decoded else None
+        if kept is not None and kept[0] == _signature(path):  # decoded by the load's check, file unchanged
+            return _finish_image(kept[1], self.image_size, grey, self.json_path, key, self.relpath(path))
         return read_image(path, size=self.image_size, key=key, grey=grey, session=self)
 
     def images(self, *, grey: bool = False) -> list[np.ndarray]:
@@ -175,17 +190,27 @@ def read_image(path, *, size=None, key="image", grey=False, session=None):
     image : (H, W) or (H, W, 3) uint8
         Colour images are RGB.
     """
-    import cv2
-
     path = Path(path)
     where = session.json_path if session is not None else path
     shown = session.relpath(path) if session is not None else str(path)
+    _check_file(path, size, where, key, shown)
+    return _finish_image(_decode(path, where, key, shown), size, grey, where, key, shown)
+
+
+def _check_file(path, size, where, key, shown):
+    """Fail unless ``path`` is a file whose header (when readable) gives ``size``; before decoding."""
     if not path.is_file():
         _fail(where, key, f"image '{shown}' does not exist; check the path (relative to the session folder)")
     header = image_header_size(path)  # before decoding: a 20000x20000 PNG is 1.2 MB on disk, 1.2 GB decoded
     if size is not None and header is not None and header != tuple(size):
         _fail(where, key, f"image '{shown}' is {header[0]}x{header[1]} px but image_size is {size[0]}x{size[1]}; "
                           "every image of a session must have the same size")
+
+
+def _decode(path, where, key, shown):
+    """The image at ``path`` decoded as stored, 8 bits, alpha dropped (BGR order for colour)."""
+    import cv2
+
     data = np.fromfile(str(path), dtype=np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
@@ -194,8 +219,20 @@ def read_image(path, *, size=None, key="image", grey=False, session=None):
         img = (img / 257).astype(np.uint8) if img.dtype == np.uint16 else img.astype(np.uint8)
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[:, :, :3]
+    return img
+
+
+def _finish_image(img, size, grey, where, key, shown):
+    """:func:`read_image`'s result from :func:`_decode`'s: RGB or grey, and its size checked."""
+    import cv2
+
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if grey else cv2.COLOR_BGR2RGB)
+    _check_size(img, size, where, key, shown)
+    return img
+
+
+def _check_size(img, size, where, key, shown):
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
         _fail(
             where,
@@ -203,7 +240,6 @@ def read_image(path, *, size=None, key="image", grey=False, session=None):
             f"image '{shown}' is {img.shape[1]}x{img.shape[0]} px but image_size is "
             f"{size[0]}x{size[1]}; every image of a session must have the same size",
         )
-    return img
 
 
 def _image_at_angle(item, key, where, hint):
@@ -503,10 +539,33 @@ def _check_images(s):
         if v.mask is not None:
             items.append((v.mask, f"views[{i}].mask"))
     big = s.image_size[0] * s.image_size[1] > _DECODE_CHECK_MAX_PX
-    for p, key in items:
-        if big and image_header_size(p) == tuple(s.image_size):
-            continue  # its header is checked; decoding is left to the run (after its memory pre-flight)
-        s.read(p, key=key)
+    if big:
+        for p, key in items:
+            if image_header_size(p) != tuple(s.image_size):
+                s.read(p, key=key)  # fails with the message naming its size
+        return  # headers checked; decoding is left to the run (after its memory pre-flight)
+    # the run's inputs (views, masks, background frames) are kept for its first read, within a budget
+    # (decoding on threads was tried: 10-25 % more CPU, no shorter under load)
+    n_boards = len(s.intrinsic_images) + len(s.turntable_images)
+    budget = _KEEP_DECODED_BYTES
+    for k, (p, key) in enumerate(items):  # what Session.read checks, without its colour conversion
+        sig = _signature(p)
+        where, shown = s.json_path, s.relpath(p)
+        _check_file(Path(p), s.image_size, where, key, shown)
+        img = _decode(p, where, key, shown)
+        _check_size(img, s.image_size, where, key, shown)
+        if k >= n_boards and sig is not None and img.nbytes <= budget:
+            budget -= img.nbytes
+            s._decoded[str(p)] = (sig, img)
+
+
+def _signature(path):
+    """What tells a file changed since it was decoded: device, inode, size, modification time (ns); None if gone."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def write_json(path, obj):

@@ -31,9 +31,13 @@ def _sils(model, masks):
     return [Silhouette(m, model._coverage(i, m), 10.0, "subtraction") for i, m in enumerate(masks)]
 
 
-def test_a_correct_silhouette_is_not_grown(scene):
+KEYINGS = [None, {"color": "frames"}]
+
+
+@pytest.mark.parametrize("backdrop", KEYINGS, ids=["subtraction", "keyed"])
+def test_a_correct_silhouette_is_not_grown(scene, backdrop):
     cams, images, empty, cover = scene
-    model = SilhouetteModel(images, [empty])
+    model = SilhouetteModel(images, [empty], backdrop=backdrop)
     true = [c >= 0.5 for c in cover]
     out, summary = model.joint(_sils(model, true), cams, BOX)
     added = [v["added"] for v in summary["views"]]
@@ -47,9 +51,12 @@ def test_a_correct_silhouette_is_not_grown(scene):
         assert s.info["joint"] == {"added": 0, "removed": 0}
 
 
-def test_a_part_one_view_lost_comes_back_and_a_blob_no_view_explains_goes(scene):
+@pytest.mark.parametrize("backdrop", KEYINGS, ids=["subtraction", "keyed"])
+def test_a_part_one_view_lost_comes_back_and_a_blob_no_view_explains_goes(scene, backdrop):
+    """Keyed views (Delta E against the backdrop) get the edge rule, not the region rule: the notch, 6 px deep,
+    comes back from its rim in (4 px per round)."""
     cams, images, empty, cover = scene
-    model = SilhouetteModel(images, [empty])
+    model = SilhouetteModel(images, [empty], backdrop=backdrop)
     true = [c >= 0.5 for c in cover]
     masks = [t.copy() for t in true]
     # view 3 loses a notch on its outline (as a dark part below the threshold would)

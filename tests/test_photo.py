@@ -79,10 +79,12 @@ def test_photo_carves_the_hidden_bowls(bowls):
     ex, lost = _excess_lost(r.occupancy, frac, spec, grid)
     assert r.method == "photo" and r.threshold == DEFAULT_PHOTO_THRESHOLD
     assert not np.any(r.occupancy & ~hull)
-    # measured at 2 mm, 18 views: hull excess 8.67 %, 63.2 % of it removed; lost 1.24 % -> 1.59 %
-    # (the 2 mm hull's own loss is voxel quantisation); bounds leave room for noise, not for a regression
+    # measured at 2 mm, 18 views: hull excess 8.67 %, 61.9 % of it removed; lost 1.24 % -> 1.38 %
+    # (the 2 mm hull's own loss is voxel quantisation); 0.5x / 2x of the gain: 60.9 % / 55.6 % removed,
+    # 0.17 / 0.03 % lost.  Before the third pair's confirmation: 63.2 % removed, 0.35 % lost (the bound
+    # below would pass it; the sample's test is the one it fails).  Room for noise, not for a regression.
     assert (ex0 - ex) / ex0 > 0.5
-    assert lost - lost0 < 0.7
+    assert lost - lost0 < 0.3
     for c, m in zip(cams, masks):  # the guard: every silhouette pixel the hull explained stays explained
         assert not (m & model_mask(hull, c, grid=grid) & ~model_mask(r.occupancy, c, grid=grid)).any()
     entry = report_entry(r, hull, grid)
@@ -92,12 +94,42 @@ def test_photo_carves_the_hidden_bowls(bowls):
     assert 0 < max(x["max_depth_mm"] for x in entry["regions"]) < 30
 
 
+def test_photo_leaves_the_sample_phantom(tmp_path):
+    """The AAA sample: smooth shading and sparse spots, nothing to carve but the roof over its flat top cap.
+
+    Scored against the exact phantom (its constants were never measured on it before this rule): what
+    the carving takes of the true volume stays small; the volume stays close to the hull's.
+    """
+    from organlab.synthetic import with_true_cameras
+    from organlab.synthetic._specimens import AAAPhantom
+
+    s = ol.load_session(with_true_cameras("sample_sessions/aaa_phantom", tmp_path / "aaa", step=2))
+    cal, _ = ol.calibration_for(s)
+    cams, grid = cal.cameras(s), ol.VoxelGrid.from_session(s, voxel_size=2.0)
+    sils = ol.silhouettes(s)
+    masks = [x.mask for x in sils]
+    hull = hull_field(sils, cams, grid, sparse=True).occupancy()
+    spec = AAAPhantom()
+    frac = _fraction_inside(spec, grid, ndimage.binary_dilation(hull, iterations=2))
+    r = photo_carve([s.read(v.image) for v in s.views], cams, hull, grid, masks=masks)
+    ex0, lost0 = _excess_lost(hull, frac, spec, grid)
+    ex, lost = _excess_lost(r.occupancy, frac, spec, grid)
+    # measured (18 views, 2 mm): 0.028 % of the true volume lost by carving; the rule before the third
+    # pair's confirmation (with its 1.5-voxel margin) lost 0.102 %
+    assert lost - lost0 < 0.07
+    carved = hull & ~r.occupancy
+    # measured: 29 voxels carved, 0.20 of them inside on average (mostly the roof over the cap: empty space)
+    assert carved.any() and frac[carved].mean() < 0.5
+    # measured -0.139 % (before: -0.24 %); the roof alone is about 0.35 % of the hull at 1 mm
+    assert abs(grid.volume_of(r.occupancy) / grid.volume_of(hull) - 1) < 0.002
+
+
 def test_photo_threshold_orders_the_carving(bowls):
     """A larger NCC gain asks for more evidence: never more carved."""
     folder, spec, cams, grid, masks, hull, images, frac = bowls
     lo = photo_carve(images, cams, hull, grid, masks=masks, threshold=0.15, passes=1)
     hi = photo_carve(images, cams, hull, grid, masks=masks, threshold=0.6, passes=1)
-    assert hi.n_carved <= lo.n_carved  # measured (2 mm, one pass): 2266 <= 2628 voxels
+    assert hi.n_carved <= lo.n_carved  # measured (2 mm, one pass): 2054 <= 2460 voxels
     assert hi.n_carved > 0.5 * lo.n_carved  # no cliff over 4x of the gain
 
 
@@ -161,6 +193,6 @@ def test_dino_photo_keeps_the_silhouettes():
 
     # the guard keeps every silhouette pixel the hull explained, so carving can only tighten the model
     assert iou(r.occupancy) > iou(hull) - 0.005
-    # measured at 1 mm (benchmarks/bench_photo.py dino): IoU 0.9679 vs the hull's 0.9674, 15.6 % of the
-    # 16-view hull's volume carved (20 590 voxels put back by the guard); not a hollowed model
+    # measured at 1 mm (benchmarks/bench_photo.py dino): IoU 0.9678 vs the hull's 0.9674, 15.6 % of the
+    # 16-view hull's volume carved (21 831 voxels put back by the guard); not a hollowed model
     assert 0.75 * grid.volume_of(hull) < grid.volume_of(r.occupancy) < grid.volume_of(hull)

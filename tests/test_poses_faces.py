@@ -14,7 +14,7 @@ from organlab.calibration import calibration_for
 from organlab.capture import audited_angles
 from organlab.poses import refine_poses
 from organlab.session import load_session
-from organlab.silhouette import silhouettes
+from organlab.silhouette import SilhouetteModel
 from organlab.synthetic import make_session
 
 from tests.test_poses import BUMP, SMALL
@@ -54,12 +54,14 @@ def test_drifting_table_recovered_with_and_without_the_audit(tmp_path):
     make_session(out, **SMALL, seed=6, specimen="dented", true_angles_deg=true)
     s = load_session(out)
     cal, _ = calibration_for(s)
-    sils = silhouettes(s)
+    model = SilhouetteModel.from_session(s)
+    sils = model.silhouettes()
+    kw = dict(images=model.images, background=model.background)  # as the engine passes them
     cmd = np.array([v.angle_deg for v in s.views])
     e0 = _err(cmd, true)
     assert np.median(e0) > 1.0 and e0.max() > 2.5  # measured 1.69 / 2.95 degrees
 
-    r = refine_poses(s, cal, sils, mode="auto")
+    r = refine_poses(s, cal, sils, mode="auto", **kw)
     assert r.to_dict()["angle_prior"] == "the commanded angles"
     # the tangents alone: measured at 320 x 240 'auto' skips (largest view 0.23 px), the angles stay
     # 1.69 / 2.95 degrees off (at 640 x 480 'on' applies them: 0.27 / 0.63, docs/trust.md)
@@ -76,7 +78,7 @@ def test_drifting_table_recovered_with_and_without_the_audit(tmp_path):
     err -= err[0]
     s.raw["capture"] = {"audit": [{"commanded_deg": float(a), "measured_deg": float(a + e), "error_deg": float(e)}
                                   for a, e in zip(cmd, err)]}
-    ra = refine_poses(s, cal, sils, mode="auto")
+    ra = refine_poses(s, cal, sils, mode="auto", **kw)
     d = ra.to_dict()
     assert d["angle_prior"].startswith("the capture's angle audit (24 of 24 views")
     e2 = _err(_used_angles(cal, ra.cameras), true)

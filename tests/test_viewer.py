@@ -337,6 +337,33 @@ def test_thesis_hull_and_coloring_reruns(app):
     assert app.wait(g, timeout=120)
 
 
+def test_photo_colour_slider_offers_the_ncc_gain(app):
+    """The colour slider takes the range of the chosen method from the engine (photo: an NCC gain)."""
+    from organlab.engine import color_threshold_range
+
+    c = app.controls
+    g = app.worker.generation
+    c.method.value = "photo"  # grey levels -> NCC gain: back to automatic, the slider on the gain's range
+    assert app.worker.generation == g + 1 and c.color_auto.value is True
+    rng = color_threshold_range("photo")
+    assert (c.color_threshold.min, c.color_threshold.max) == (rng.low, rng.high) == (0.05, 1.0)
+    assert app.wait(g + 1, timeout=300) and not app.errors
+    res = app.result
+    assert res.settings.method == "photo" and res.settings.color_threshold is None
+    assert res.color_threshold == rng.default and abs(c.color_threshold.value - rng.default) < 1e-9
+    assert "0.25 NCC gain (automatic)" in c.measure.content
+    c.color_threshold.value = 0.5  # a chosen gain is accepted by Settings (a grey-level 40 would not be)
+    assert app.wait(g + 2, timeout=300) and not app.errors
+    assert app.result.settings.color_threshold == 0.5 and not c.color_auto.value
+    assert app.result.occupancy.sum() >= res.occupancy.sum()  # more evidence asked: never more carved
+    c.method.value = "coloring"  # and back: the grey-level range
+    assert (c.color_threshold.min, c.color_threshold.max) == (1.0, 60.0) and c.color_auto.value is True
+    assert app.wait(g + 3, timeout=300) and not app.errors
+    assert app.result.settings.color_threshold is None
+    g = app.rerun(method="hull")
+    assert app.wait(g, timeout=120)
+
+
 def test_roi_box_readout_and_apply(app):
     c = app.controls
     c.roi_edit.value = True

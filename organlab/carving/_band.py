@@ -296,7 +296,8 @@ def band_field(sdfs, cameras, grid, *, tolerance, min_views, block=4, levels=4):
 
     states = np.zeros(tuple(nb), dtype=np.int8)
     top = -(-nb // (1 << L))
-    blocks = np.indices(tuple(int(t) for t in top)).reshape(3, -1).T.astype(np.int64)
+    # C order, as the later levels' blocks (boolean-indexed) are: one specialisation of _classify and _paint
+    blocks = np.ascontiguousarray(np.indices(tuple(int(t) for t in top)).reshape(3, -1).T, dtype=np.int64)
     active = np.ones((len(blocks), nv), dtype=np.uint8)
     nout = np.zeros(len(blocks), dtype=np.int64)
     nseen = np.zeros(len(blocks), dtype=np.int64)

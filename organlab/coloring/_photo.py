@@ -26,6 +26,7 @@ _PEAK = 0.1  # NCC: how far below the best score the peak's front is taken
 _MIN_STD = 2.0  # grey levels: windows flatter than this (either image) give no evidence
 _NEIGHBOUR_DEG = (12.0, 40.0)  # angles between a view and the views it is compared with
 _MAX_NEIGHBOURS = 4
+_CONFIRM = 0.5  # NCC: where three or more pairs are valid at the best depth, the third best must match too
 
 
 def _neighbours(cameras, centre):
@@ -101,7 +102,8 @@ def _view_evidence(i, nbrs, grey, fg, cams_packed, cameras, occ, grid, lo, hi, d
     warped = out.reshape(J, n_steps, h, w)
     ref = grey[i, y0:y1, x0:x1]
     valid_ref = (fg[i, y0:y1, x0:x1] != 0) & np.isfinite(t_s.reshape(h, w))
-    score = _top2(_window_ncc(ref, warped, valid_ref, window))  # (S, h, w)
+    ncc = _window_ncc(ref, warped, valid_ref, window)
+    score = _top2(ncc)  # (S, h, w)
     s0 = score[0]
     filled = np.where(np.isfinite(score), score, -np.inf)
     best = np.argmax(filled, axis=0)
@@ -113,7 +115,12 @@ def _view_evidence(i, nbrs, grey, fg, cams_packed, cameras, occ, grid, lo, hi, d
     beyond = (steps <= best[None]) & ~near
     front = np.where(beyond.any(0), (np.where(beyond, steps, -1).max(0) + 1), 0)
     free_to = front * dt - margin
-    ok = (np.isfinite(s0) & (s_best >= _MIN_SCORE) & (s_best - s0 >= threshold) & (free_to > 0)).ravel()
+    ok = np.isfinite(s0) & (s_best >= _MIN_SCORE) & (s_best - s0 >= threshold) & (free_to > 0)
+    if len(ncc) > 2:  # the depth confirmed by a third pair wherever one is valid there
+        at = np.take_along_axis(ncc, np.broadcast_to(best[None, None], (len(ncc), 1) + best.shape), 1)[:, 0]
+        third = -np.sort(-np.where(np.isfinite(at), at, -np.inf), axis=0)[2]
+        ok &= ~np.isfinite(third) | (third >= _CONFIRM)
+    ok = ok.ravel()
     if not ok.any():
         return None
     t_from = t_s[ok]
@@ -132,10 +139,13 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
     ``window`` x ``window`` patches around them compared with the view's own
     by normalised cross-correlation (blind to exposure and shading).  A
     depth's score is the mean NCC of its two best view pairs (so at least
-    two pairs must agree; occluded or highlighted pairs drop out).  Where the
-    best depth scores at least 0.5 and ``threshold`` more than the surface
-    itself, the ray is free from the surface to one voxel before that depth:
-    its voxels get a vote from this view.  Voxels with votes from
+    two pairs must agree; occluded or highlighted pairs drop out); where a
+    third pair is valid at the best depth it must match too (NCC >= 0.5):
+    smooth shading and sparse spots match two pairs by chance far more often
+    than three.  Where the best depth scores at least 0.5 and ``threshold``
+    more than the surface itself, the ray is free from the surface to one
+    voxel before the front of that depth's peak: its voxels get a vote from
+    this view.  Voxels with votes from
     ``min_views`` views are carved; the next pass starts from the carved
     surface (visibility from the current surface); finally the silhouette
     guard puts back every voxel a silhouette needs.
@@ -162,7 +172,7 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
         Sweeps; each starts from the previous one's carved surface.
     margin : float, mm, optional
         How far in front of the matched depth a free ray stops (along the
-        ray); default 1.5 voxels (carving right to the surface would cut
+        ray); default 1 voxel (carving right to the surface would cut
         the voxels the surface crosses, which the hull keeps).
     guard : bool
         Silhouette guard (see :func:`color_voxels`).
@@ -217,7 +227,7 @@ def photo_carve(images: Sequence[np.ndarray], cameras: Sequence[Camera], occupan
     # depth step: the distance that moves a point by about 0.5 px in a neighbour 25 degrees away
     px_mm = min(c.K[0, 0] / np.linalg.norm(c.center - centre) for c in cameras)
     dt = min(0.5 * h, 0.5 / (px_mm * np.sin(np.radians(25.0))))
-    margin = 1.5 * h if margin is None else float(margin)
+    margin = 1.0 * h if margin is None else float(margin)
     total = passes * n_views
     done = 0
     carved_per_pass = []

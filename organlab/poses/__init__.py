@@ -18,12 +18,13 @@ angles are held to the measured ones instead of the commanded ones.
 one function; it returns a :class:`PoseRefinement` (``.cameras`` to carve
 with, ``.to_dict()`` for ``report.json``).
 
-Private modules: ``_tangents`` (outline rays, extremal epipolar planes),
+Private modules: ``_outline`` (the edge pixels' coverage re-estimated from the
+images, for sub-pixel outlines), ``_tangents`` (outline rays, extremal epipolar planes),
 ``_model`` (the pose model, its residuals and the robust fit), ``_refine``
 (detection, slip, gate).  Silhouette coherence along outline rays was tried and
 dropped (docs/trust.md says why).
 """
 
-from ._refine import FLAG_PX, MODES, PoseRefinement, refine_poses
+from ._refine import FLAG_PX, FLAG_SUBPIXEL_PX, MODES, PoseRefinement, refine_poses
 
-__all__ = ["refine_poses", "PoseRefinement", "MODES", "FLAG_PX"]
+__all__ = ["refine_poses", "PoseRefinement", "MODES", "FLAG_PX", "FLAG_SUBPIXEL_PX"]

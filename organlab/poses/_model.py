@@ -32,8 +32,14 @@ import numpy as np
 from ..camera import Camera, rot_z
 from ._tangents import MAX_HALF_ANGLE_DEG, pair_angles
 
-SIGMA_ANGLE_DEG = 3.0
-SIGMA_SMOOTH_DEG = 0.1
+#: Each view's angle correction, held loosely (its drift is what the tangents measure): a tight hold pulls
+#: a drifting table's angles back toward the commanded ones, by a turn common to every view but the first
+#: (3 degrees: 0.2-0.34 degrees on the drifting ``dented`` table at 640 x 480, docs/trust.md).
+SIGMA_ANGLE_DEG = 30.0
+#: Second differences of the angle corrections: a table drifts smoothly, each stop with its own error of a
+#: few tenths of a degree (0.3 degrees of jitter give second differences of sd 0.7; 0.1 degrees, as before
+#: the sub-pixel outlines, smoothed the stops' own errors away: 0.29 / 0.73 degrees against 0.17 / 0.54).
+SIGMA_SMOOTH_DEG = 0.5
 #: The capture's angle audit (measured from the board at every stop): its error on the simulated rig is
 #: below 0.01 deg at 640 x 480, 0.05 deg at 320 x 240 (docs/capture.md); the views are taken at the same stops
 #: in a later pass, so a little more.

@@ -14,6 +14,7 @@ from ..masks import Silhouette, as_arrays
 from ..session import Session
 from . import _model
 from ._model import Model, Problem
+from ._outline import edge_coverage
 from ._tangents import outline_rays, pad_rays
 
 MODES = ("auto", "on", "off")
@@ -22,6 +23,10 @@ MODES = ("auto", "on", "off")
 #: ('auto' refines when any is).  Measured on correct renders at 320 x 240
 #: (aaa-7, dented: largest view 0.23, 0.19 px; a slip 0.53, a bump 3.3) and 640 x 480 (docs/trust.md).
 FLAG_PX = 0.3
+#: The same with the sub-pixel outlines (:mod:`._outline`, the views' images given): correct renders' largest
+#: view 0.14 px (aaa-7, 640 x 480), 0.16 px (320 x 240), the bundled sample 0.12 px (0.18 with the coverage);
+#: a table drifting 3 degrees under the lobed ``dented`` 0.27-0.28 px, which 0.3 px let 'auto' skip.
+FLAG_SUBPIXEL_PX = 0.2
 #: Outline points this close to a silhouette's lowest row (px) are its foot on the plate.
 FOOT_PX = 4.0
 #: Folds of the leave-out gate: views ``i % GATE_FOLDS == f`` are left out of fit ``f``.
@@ -32,6 +37,9 @@ GATE_RATIO = 0.8
 GATE_MIN_PX = 0.05
 #: A slip is kept when the fit with it lowers the robust cost below this fraction of the fit without.
 SLIP_GAIN = 0.6
+#: The views whose split of the pairs' residuals scores highest are each fitted with a slip there; the lowest
+#: cost wins (the score alone put the slip one view late at 320 x 240: view 13 for a true 12, hull -0.68 %).
+SLIP_TRIES = 3
 #: ... and when the specimen moved at least this far on the plate, mm (a turn alone is a step
 #: in the angles: measured on a drifting table, a 'slip' of 0.02 mm and 1 degree at the middle view).
 SLIP_MIN_MM = 0.25
@@ -73,7 +81,9 @@ class PoseRefinement:
     gate : dict
         Left-out views' median RMS before/after, px, per fold and overall.
     flagged : list of int
-        Views over :data:`FLAG_PX` before.
+        Views over ``flag_px`` before.
+    flag_px : float
+        :data:`FLAG_SUBPIXEL_PX` when the outlines were re-estimated from the images, else :data:`FLAG_PX`.
     prior : str
         What the views' angles were held to: the commanded angles, or the capture's angle audit.
     audit_applied : bool
@@ -98,6 +108,7 @@ class PoseRefinement:
     seconds: float = 0.0
     prior: str = "the commanded angles"
     audit_applied: bool = False
+    flag_px: float = FLAG_PX
 
     def to_dict(self) -> dict:
         """JSON-ready (the ``poses`` entry of ``report.json``)."""
@@ -106,7 +117,7 @@ class PoseRefinement:
             "accepted": bool(self.accepted),
             "reason": self.reason,
             "model": self.model,
-            "flag_px": FLAG_PX,
+            "flag_px": self.flag_px,
             "flagged_views": [self._name(i) for i in self.flagged],
             "angle_prior": self.prior,
             "audit_applied": bool(self.audit_applied),
@@ -137,7 +148,8 @@ def _f(v):
 
 def refine_poses(session: Session | None, calibration: Calibration | None, silhouettes: Sequence[Silhouette | np.ndarray],
                  *, mode: str = "auto", cameras: Sequence[Camera] | None = None,
-                 names: Sequence[str] | None = None) -> PoseRefinement:
+                 names: Sequence[str] | None = None, images: Sequence[np.ndarray | None] | None = None,
+                 background: np.ndarray | None = None) -> PoseRefinement:
     """Correct the views' poses so that every silhouette agrees with the others.
 
     Parameters
@@ -152,12 +164,19 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
         One per view (coverage in ``[0, 1]``, or masks).
     mode : {'auto', 'on', 'off'}
         ``'auto'``: refine only when a view's tangent residuals exceed
-        :data:`FLAG_PX`; ``'on'``: always try; ``'off'``: never.  In both
+        :data:`FLAG_PX` (:data:`FLAG_SUBPIXEL_PX` with ``images``); ``'on'``: always try; ``'off'``: never.  In both
         first cases the result is used only when the leave-out gate accepts it.
     cameras : list of Camera, optional
         The views' cameras before refinement (default ``calibration.cameras(session)``).
     names : list of str, optional
         View names for the report.
+    images : sequence of (H, W, 3) uint8 or None, optional
+        The views' images, with ``background`` (the empty scene's model,
+        :attr:`organlab.silhouette.SilhouetteModel.background`): the outlines
+        the tangents read are then re-estimated colour by colour on the
+        silhouettes' edges (:func:`organlab.poses._outline.edge_coverage`), for
+        views found by background subtraction; without them (or for keyed and
+        given silhouettes) the silhouettes' own coverage is read.
 
     Returns
     -------
@@ -186,9 +205,32 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
     covs = as_arrays(list(silhouettes), "coverage")
     if len(covs) != len(cameras):
         raise ValueError(f"got {len(covs)} silhouettes but {len(cameras)} cameras: give one silhouette per view")
-    done = _refine(session, calibration, covs, cameras, mode, names)
+    if images is not None:
+        if len(images) != len(covs):
+            raise ValueError(f"got {len(images)} images but {len(covs)} silhouettes: give one image per view (or None)")
+        if background is None:
+            raise ValueError("images need their background (the empty scene's model)")
+        covs, sharp = _outlines(list(silhouettes), covs, images, np.asarray(background))
+    else:
+        sharp = False
+    done = _refine(session, calibration, covs, cameras, mode, names, FLAG_SUBPIXEL_PX if sharp else FLAG_PX)
     done.seconds = time.perf_counter() - t_start
     return done
+
+
+def _outlines(silhouettes, covs, images, background):
+    """The coverage the tangents read, re-estimated on the edges of subtracted views (:mod:`._outline`), and
+    whether every view's was."""
+    out, sharp = [], True
+    for sil, cov, img in zip(silhouettes, covs, images):
+        subtracted = sil.source == "subtraction" if isinstance(sil, Silhouette) else True
+        if img is None or not subtracted or np.shape(img) != np.shape(background):
+            out.append(cov)
+            sharp = False
+            continue
+        mask = sil.mask if isinstance(sil, Silhouette) else np.asarray(cov) >= 0.5
+        out.append(edge_coverage(img, background, mask))
+    return out, sharp
 
 
 def _build_model(session, calibration, cameras):
@@ -227,10 +269,10 @@ def _build_model(session, calibration, cameras):
     return None, "views mix given poses and table angles: not refined"
 
 
-def _refine(session, calibration, covs, cameras, mode, names):
+def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX):
     model, why = _build_model(session, calibration, cameras)
     model_in = model
-    base = dict(cameras=cameras, accepted=False, mode=mode, names=names)
+    base = dict(cameras=cameras, accepted=False, mode=mode, names=names, flag_px=flag_px)
     if model is None:
         return PoseRefinement(reason=f"not refined: {why}", **base)
     cam0 = cameras[0]
@@ -251,7 +293,7 @@ def _refine(session, calibration, covs, cameras, mode, names):
         return PoseRefinement(reason=f"not refined: only {len(pb.I)} usable view pairs", model=model.kind, **base)
     x0 = np.zeros(model.n_params)
     before = pb.view_rms(x0)
-    flagged = [int(i) for i in np.nonzero(before > FLAG_PX)[0]]
+    flagged = [int(i) for i in np.nonzero(before > flag_px)[0]]
     base.update(model=model.kind, before_px=before, after_px=before, flagged=flagged,
                 angle_corrections_deg=np.zeros(model.n))
     audit_m = model.angle_prior()[0] if model.audit_deg is not None else np.zeros(model.n)
@@ -262,7 +304,7 @@ def _refine(session, calibration, covs, cameras, mode, names):
     if mode == "auto" and not flagged and audit_off <= AUDIT_FLAG_DEG:
         also = f" and the angle audit measured every stop within {AUDIT_FLAG_DEG} deg" if model.audit_deg is not None else ""
         return PoseRefinement(reason=f"skipped: every view agrees (largest tangent RMS {np.nanmax(before):.2f} px "
-                              f"<= {FLAG_PX} px){also}", **base)
+                              f"<= {flag_px} px){also}", **base)
     # candidates: the shared camera pose alone, the angles alone, both (each with a slip when
     # one is found); the leave-out gate picks the simplest that views left out agree best with
     kinds = ((True, False), (False, True), (True, True)) if model.kind == "turntable" else ((False, True),)
@@ -355,7 +397,7 @@ def _try_slip(pb, model, x, H, cen, f, low=None):
     info0 = {"cost": _model.cost(pb.residuals(x))}
     scores = _split_score(pb, x, n)
     best = None
-    for k in [int(i) for i in np.argsort(scores)[::-1][:1] if np.isfinite(scores[i])]:
+    for k in [int(i) for i in np.argsort(scores)[::-1][:SLIP_TRIES] if np.isfinite(scores[i])]:
         ms = replace(model, slip_view=k)
         ps = Problem(ms, H, cen, f, pairs=(pb.I, pb.J), low=low)
         xs, info = ps.fit(np.concatenate([x, np.zeros(3)]))

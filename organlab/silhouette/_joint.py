@@ -202,7 +202,8 @@ def _regions(d, missing, stats, mask, ring):
     return out
 
 
-def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) -> tuple[np.ndarray, dict]:
+def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int, *,
+                regions: bool = True) -> tuple[np.ndarray, dict]:
     """One view's joint refinement: its difference image against the prior's projection.
 
     Parameters
@@ -216,6 +217,8 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) 
     slack : int, px
         How far the prior's projection may overshoot the specimen's outline
         (voxel size and bounding-box margin).
+    regions : bool
+        Whether the region rule runs (the edge rule and the removal always do).
 
     Returns
     -------
@@ -230,9 +233,9 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) 
     if st is not None:
         grown = _edge_grow(d, out, prior, st[2], EDGE_ROUNDS)
         deep = _erode(prior, slack)
-        regions = _regions(d, deep & ~grown, st, grown, ring)
-        if regions.any():
-            grown2 = _edge_grow(d, grown | regions, prior, st[2], EDGE_ROUNDS)
+        parts = _regions(d, deep & ~grown, st, grown, ring) if regions else None
+        if parts is not None and parts.any():
+            grown2 = _edge_grow(d, grown | parts, prior, st[2], EDGE_ROUNDS)
             info["added_regions"] = int(np.count_nonzero(grown2 & ~grown))
         else:
             grown2 = grown
@@ -249,8 +252,11 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int) 
 
 
 def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | None], cameras: Sequence[Camera],
-                box: tuple, *, iterations: int = ITERATIONS) -> tuple[list[np.ndarray], dict]:
+                box: tuple, *, iterations: int = ITERATIONS, regions: bool = True) -> tuple[list[np.ndarray], dict]:
     """Masks of every view refined together (module docstring); views without a difference image are kept.
+
+    ``regions=False`` leaves out the region rule (4): keyed views (a backdrop colour, no model of the
+    background per pixel) of a dark specimen have no colour evidence for it (see SilhouetteModel.joint).
 
     Returns
     -------
@@ -282,7 +288,7 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
             fp = cam.pixel_footprint(np.asarray(grid.origin) + 0.5 * voxel * np.asarray(grid.shape))
             slack = int(math.ceil(2.5 * voxel / fp)) if math.isfinite(fp) and fp > 0 else 3
             prior = model_mask(hull, cam, grid=grid)
-            m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack)
+            m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack, regions=regions)
             changed += int(np.count_nonzero(m != cur[i]))
             new.append(m)
         cur = new

@@ -3,6 +3,10 @@ numpy expressions they replace, computed in one pass and in parallel.
 
 * :func:`median_frames` -- ``np.median(stack, axis=0).astype(np.float32)`` of
   uint8 frames (a per-pixel histogram: the median of integers is exact);
+* :func:`std_frames` -- ``stack.astype(np.float32).std(axis=0, ddof=1)`` of
+  uint8 frames, as numpy evaluates it (float32 sums over the frames in
+  order, the mean and the variance divided in float64 and rounded to float32,
+  float32 square root), in one pass without the float32 copy of the stack;
 * :func:`color_distance` -- ``difference``'s colour distance,
   ``float32(float64(sqrt(float32 sum of squares)) / sqrt(3))``, as numpy
   evaluates it (float32 squares summed left to right, float32 square root).
@@ -68,4 +72,38 @@ def color_distance(img, bg):
             d2 = np.float32(img[r, c, 2]) - bg[r, c, 2]
             s = d0 * d0 + d1 * d1 + d2 * d2
             out[r, c] = np.float32(np.float64(np.sqrt(s)) / s3)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def std_frames(stack):
+    """Per-pixel standard deviation (``ddof=1``) over axis 0 of ``(N, P)`` uint8, as float32 ``(P,)``.
+
+    numpy's ``std`` on the float32 stack: the frames summed in order in float32, the sum divided
+    by N (in float64, then rounded to float32: the same as a float32 division), the squared float32
+    deviations summed in order, divided by N - 1 likewise, float32 square root.  Pixels in chunks
+    that stay in cache, the frames read row by row.
+    """
+    n, p = stack.shape
+    out = np.empty(p, dtype=np.float32)
+    step = 4096
+    acc = np.empty(step, dtype=np.float32)
+    mean = np.empty(step, dtype=np.float32)
+    for b0 in range(0, p, step):
+        m = min(step, p - b0)
+        for i in range(m):
+            acc[i] = np.float32(stack[0, b0 + i])
+        for k in range(1, n):
+            for i in range(m):
+                acc[i] += np.float32(stack[k, b0 + i])
+        for i in range(m):
+            mean[i] = np.float32(np.float64(acc[i]) / n)
+            d = np.float32(stack[0, b0 + i]) - mean[i]
+            acc[i] = d * d
+        for k in range(1, n):
+            for i in range(m):
+                d = np.float32(stack[k, b0 + i]) - mean[i]
+                acc[i] += d * d
+        for i in range(m):
+            out[b0 + i] = np.sqrt(np.float32(np.float64(acc[i]) / (n - 1)))
     return out

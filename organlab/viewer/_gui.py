@@ -7,6 +7,7 @@ import threading
 
 import numpy as np
 
+from ..engine import color_threshold_range
 from ..errors import OrganlabError
 from ..preflight import check_grid_memory
 from . import _scene
@@ -18,7 +19,6 @@ MODELS = ("mesh", "voxels", "mesh + voxels")
 #: crafted message set a 0.05 mm voxel or a 3 m roi (30-45 s at 2.8 GB while newer requests waited).
 THRESHOLD_RANGE = (1.0, 80.0)
 VOXEL_RANGE = (0.5, 5.0)
-COLOR_THRESHOLD_RANGE = (1.0, 60.0)
 ROI_SIDE_RANGE = (1.0, 1000.0)  # mm
 
 
@@ -54,9 +54,13 @@ class Controls:
             self.voxel = gui.add_slider("Voxel size (mm)", min=0.5, max=5.0, step=0.5, initial_value=st.voxel_size)
             self.method = gui.add_dropdown("Method", METHODS, initial_value=st.method)
             self.hull = gui.add_dropdown("Hull", HULLS, initial_value=st.hull)
+            rng = color_threshold_range("coloring" if st.method == "hull" else st.method)
+            self._color_method = "coloring" if st.method == "hull" else st.method
             self.color_threshold = gui.add_slider(
-                "Colour threshold", min=1.0, max=60.0, step=0.5, initial_value=1.0, disabled=True,
-                hint="photo-consistency threshold, grey levels; shows the automatic one until moved")
+                "Colour threshold", min=rng.low, max=rng.high, step=rng.step,
+                initial_value=rng.default if rng.default is not None else rng.low, disabled=True,
+                hint="photo-consistency threshold (grey levels; for photo the NCC gain); shows the automatic one "
+                     "until moved")
             self.color_auto = gui.add_checkbox("Automatic colour threshold", initial_value=True, disabled=True,
                                                hint="from the measured image noise (organlab.coloring)")
             self.tolerance = gui.add_slider("Tolerance (views)", min=0, max=min(5, n - 1), step=1, initial_value=0)
@@ -134,6 +138,23 @@ class Controls:
             self._set_quietly(handle, x)
         return x
 
+    def _color_bounds(self):
+        rng = color_threshold_range(self._color_method)
+        return rng.low, rng.high
+
+    def _color_range(self, method):
+        """Give the colour slider ``method``'s range, step and automatic value (from the engine); True when
+        its unit changed (grey levels <-> NCC gain).  ``'hull'`` keeps the slider as it is."""
+        if method == "hull" or method == self._color_method:
+            return False
+        old, rng = color_threshold_range(self._color_method), color_threshold_range(method)
+        self._color_method = method
+        h = self.color_threshold
+        value = rng.default if rng.default is not None else min(max(h.value, rng.low), rng.high)
+        h.min, h.max, h.step, h.precision = rng.low, rng.high, rng.step, 2 if rng.step < 0.1 else 1
+        self._set_quietly(h, value)
+        return old.unit != rng.unit
+
     def _choice(self, handle, options):
         """The dropdown's value when it is one of ``options``, else the first (shown corrected)."""
         if handle.value not in options:
@@ -180,7 +201,11 @@ class Controls:
                 return
             method = self._choice(self.method, METHODS)
             self.color_threshold.disabled = self.color_auto.disabled = method == "hull"
-            self._settings_changed(method=method)
+            if self._color_range(method):  # another unit: a chosen threshold means nothing there
+                self._set_quietly(self.color_auto, True)
+                self._settings_changed(method=method, color_threshold=None)
+            else:
+                self._settings_changed(method=method)
 
         @self.hull.on_update
         def _(_e):
@@ -192,13 +217,13 @@ class Controls:
             if self._quiet:
                 return
             self._set_quietly(self.color_auto, False)
-            self._settings_changed(color_threshold=self._bounded(self.color_threshold, *COLOR_THRESHOLD_RANGE))
+            self._settings_changed(color_threshold=self._bounded(self.color_threshold, *self._color_bounds()))
 
         @self.color_auto.on_update
         def _(_e):
             if not self._quiet:
                 self._settings_changed(color_threshold=None if self.color_auto.value else
-                                       self._bounded(self.color_threshold, *COLOR_THRESHOLD_RANGE))
+                                       self._bounded(self.color_threshold, *self._color_bounds()))
 
         @self.tolerance.on_update
         def _(_e):
@@ -320,10 +345,14 @@ class Controls:
             lines.append("**Agreement** " + fig.line(lambda j: f"{ids[j]} ({fig.names[j]})"))
             lines.append("<br/>" + " ".join(f"`{ids[j]}:{a:.2f}`" for j, a in enumerate(ag)))
         if res.color_threshold is not None:
-            lines.append(f"**Colour threshold** {res.color_threshold:.1f}"
+            self._color_range(res.settings.method)  # a re-run asked for by code (app.rerun) may change method
+            rng = color_threshold_range(self._color_method)
+            digits = 2 if rng.step < 0.1 else 1
+            lines.append(f"**Colour threshold** {res.color_threshold:.{digits}f}"
+                         + (f" {rng.unit}" if rng.default is not None else "")
                          + (" (automatic)" if res.settings.color_threshold is None else ""))
             if res.settings.color_threshold is None:  # the slider shows the threshold colouring measured
-                self._set_quietly(self.color_threshold, round(res.color_threshold * 2) / 2)
+                self._set_quietly(self.color_threshold, round(res.color_threshold / rng.step) * rng.step)
         warnings = (getattr(res, "report", None) or {}).get("warnings", [])
         if warnings:  # the run's own warnings, as organlab reconstruct prints them
             lines.insert(0, "**Warnings** " + "<br/>".join(f"⚠ {w}" for w in warnings))

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..engine import Engine, Settings
+from ..engine import Engine, Settings, color_threshold_range
 from ..errors import OrganlabError
 from ..figures import mesh_snapshot
 from ..session import Session
@@ -197,6 +197,7 @@ class CarvingTuner:
         """
         w = ipywidgets()
         auto = self.color_threshold == "auto"
+        rng = color_threshold_range("coloring")  # the tuner colours with method 'coloring'
         c = self.controls = {
             "voxel_size": w.FloatSlider(value=self.voxel_size, min=1.0, max=6.0, step=0.5, description="voxel (mm)",
                                         continuous_update=False),
@@ -205,7 +206,7 @@ class CarvingTuner:
             "color": w.Checkbox(value=self.color_threshold is not None, description="colour test"),
             "color_auto": w.Checkbox(value=self.color_threshold is None or auto, description="automatic"),
             "color_threshold": w.FloatSlider(value=18.0 if self.color_threshold in (None, "auto") else self.color_threshold,
-                                             min=1.0, max=60.0, step=0.5, description="colour thr.",
+                                             min=rng.low, max=rng.high, step=rng.step, description="colour thr.",
                                              continuous_update=False),
             "summary": w.Label(""),
             "output": w.Output(),
