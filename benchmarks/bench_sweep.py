@@ -14,9 +14,15 @@ time of each is kept), the 1-minute load average before and after each run is pr
 and so is the CPU time (user + sys) of this process and of each worker: the busiest worker's CPU
 against the serial run's is what the ratio would be with a core for each worker.
 
+The last line is the answer: ``RATIO parallel / serial wall = ...`` with the load average during the
+runs (the ratio means what it says only on an otherwise idle machine: load below ~0.5 before it starts).
+The line before it prints the CPU figures: the serial run's, the workers' (in their tasks and in all),
+and the busiest worker's CPU against the serial run's.  About 3-4 minutes on an idle 2-core machine
+with the default ``--repeat 3``.
+
 Usage::
 
-    .venv/bin/python benchmarks/bench_sweep.py [--workers 2] [--repeat 1] [--voxel-size 2]
+    .venv/bin/python benchmarks/bench_sweep.py [--workers 2] [--repeat 3] [--voxel-size 2]
 """
 
 from __future__ import annotations
@@ -34,10 +40,11 @@ GRID = {"threshold": [10.0, 15.0, 20.0, 25.0, 30.0, 35.0], "method": ["hull", "c
 
 
 def _warm():
-    """Load numba's compiled kernels in this process (a tiny reconstruction at 8 mm)."""
+    """Load numba's compiled kernels and pymeshlab in this process: a reconstruction at 8 mm with every stage
+    the sweep runs (colouring, finished surface, AAA measures), so no run pays a first load."""
     from organlab.engine import Engine, Settings
 
-    Engine(str(SAMPLE)).run(Settings(voxel_size=8.0, method="coloring", finish=False, measure=False))
+    Engine(str(SAMPLE)).run(Settings(voxel_size=8.0, method="coloring"))
     return os.getpid()
 
 
@@ -63,10 +70,12 @@ def _timed(label, fn, client=None):
     out = fn()
     t = time.perf_counter() - t0
     c, w = _cpu() - c0, {k: v - w0[k] for k, v in _cpu_of(client).items() if k in w0}
+    after = _load()
+    in_tasks = float(out["cpu_seconds"].sum())
     workers = f", workers {' + '.join(f'{v:.1f}' for v in w.values())} s" if w else ""
-    print(f"  {label:<28} {t:7.1f} s wall   CPU: this process {c:.1f} s{workers}   (load {before:.1f}->{_load():.1f})",
-          flush=True)
-    return {"wall": t, "cpu": c, "workers": w}, out
+    print(f"  {label:<26} {t:7.1f} s wall   CPU: this process {c:.1f} s{workers}, in the tasks {in_tasks:.1f} s"
+          f"   (load {before:.1f} -> {after:.1f})", flush=True)
+    return {"wall": t, "cpu": c, "workers": w, "in_tasks": in_tasks, "load": (before, after)}, out
 
 
 def main(argv=None):
@@ -87,9 +96,10 @@ def main(argv=None):
     settings = {"voxel_size": a.voxel_size}
     n = len(ob.expand(GRID, ob.Settings(**settings)))
     groups = ob.plan_leaves(ob.plan_tasks(ob.expand(GRID, ob.Settings(**settings))), n_workers=a.workers)
-    tasks = [t for g in groups for t in g]
+    tasks = [t for _, g in groups for t in g]
     print(f"bench_sweep: {session.name}, {n} settings ({' x '.join(f'{len(v)} {k}' for k, v in GRID.items())}) at "
-          f"{a.voxel_size:g} mm, {len(tasks)} tasks after {len(groups)} shared first stages; {os.cpu_count()} CPU cores, load average {_load():.1f}")
+          f"{a.voxel_size:g} mm, {len(tasks)} tasks after {len(groups)} shared first stages; {os.cpu_count()} CPU cores, "
+          f"load average {_load():.1f}", flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="bench_sweep-"))
     try:
         _warm()
@@ -104,7 +114,7 @@ def main(argv=None):
         with ob.dask_client(workers=a.workers) as client:
             t_start = time.perf_counter() - t0
             client.run(_warm)
-            print(f"  {'cluster start-up':<28} {t_start:7.1f} s   ({a.workers} worker processes, then warmed)")
+            print(f"  {'cluster start-up':<26} {t_start:7.1f} s   ({a.workers} worker processes, then warmed)", flush=True)
 
             def parallel():
                 out = tmp / "parallel"
@@ -119,24 +129,28 @@ def main(argv=None):
         best = {k: min(v, key=lambda r: r["wall"]) for k, v in runs.items()}
         t_serial, t_par = best["serial"]["wall"], best["parallel"]["wall"]
         cpu_serial = min(r["cpu"] for r in runs["serial"])
-        cpu_workers = min(max(r["workers"].values()) for r in runs["parallel"])
+        busiest = min(max(r["workers"].values()) for r in runs["parallel"])
+        both = min(sum(r["workers"].values()) for r in runs["parallel"])
+        in_tasks = min(r["in_tasks"] for r in runs["parallel"])
         cpu_client = min(r["cpu"] for r in runs["parallel"])
-        print(f"  best of {a.repeat}: serial {t_serial:.1f} s, parallel {t_par:.1f} s wall; CPU: serial {cpu_serial:.1f} s, "
-              f"busiest worker {cpu_workers:.1f} s (both {min(sum(r['workers'].values()) for r in runs['parallel']):.1f} s), "
-              f"client {cpu_client:.1f} s")
-        print(f"  CPU-bound estimate for an idle machine (busiest worker's CPU / serial CPU): {cpu_workers / cpu_serial:.2f}")
+        loads = [x for k in runs for r in runs[k] for x in r["load"]]
+        print(f"  CPU, best of {a.repeat}: serial run {cpu_serial:.1f} s (in its tasks {min(r['in_tasks'] for r in runs['serial']):.1f} s); "
+              f"workers {both:.1f} s (in their tasks {in_tasks:.1f} s), busiest worker {busiest:.1f} s; client {cpu_client:.1f} s")
+        print(f"  busiest worker's CPU / serial CPU: {busiest / cpu_serial:.2f}   (the wall ratio with a core for each "
+              f"worker and nothing else running; ideal 0.5)")
         cols = ["volume_mm3", "mesh_volume_mm3", "agreement_mean_iou", "agreement_worst_iou"]
         same = all(np.array_equal(df[c].to_numpy(), ref[c].to_numpy()) for c in cols)
         for name in df["name"]:
             for f in ("mesh.ply", "voxels.npz"):
                 same &= (tmp / "parallel" / "results" / name / f).read_bytes() == (tmp / "serial" / "results" / name / f).read_bytes()
         pairs = [p["wall"] / q["wall"] for p, q in zip(runs["parallel"], runs["serial"])]
-        print(f"  parallel / serial            {t_par / t_serial:7.2f}    (target <= 0.65; best walls); each pair "
-              f"{', '.join(f'{x:.2f}' for x in pairs)}; results identical: {same}")
-        print(f"  per setting: serial {t_serial / n:.1f} s, parallel {t_par / n:.1f} s; "
-              f"sum of the settings' own times {ref['seconds'].sum():.1f} s serial, {df['seconds'].sum():.1f} s on the workers")
+        print(f"  per setting: serial {t_serial / n:.1f} s, parallel {t_par / n:.1f} s wall; each pair's ratio "
+              f"{', '.join(f'{x:.2f}' for x in pairs)}")
         rec = df.attrs["recommended"]
         print(f"  recommended: {rec['name']}: {rec['reason']}")
+        print(f"RATIO parallel / serial wall = {t_par / t_serial:.2f} (target <= 0.65): best of {a.repeat}, serial "
+              f"{t_serial:.1f} s, {a.workers} workers {t_par:.1f} s; load average {min(loads):.1f}-{max(loads):.1f} "
+              f"during the runs on {os.cpu_count()} cores (trust it below ~0.5); results identical: {same}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -31,7 +31,7 @@ SAMPLE = ROOT / "sample_sessions" / "aaa_phantom"
 # 6 thresholds x 2 tolerances = 12 settings in 6 tasks (each task: one threshold's silhouettes, both tolerances)
 GRID = {"threshold": [10.0, 15.0, 20.0, 25.0, 30.0, 35.0], "tolerance": [0, 1]}
 BASE = {"voxel_size": 2.0, "finish": False, "measure": False}
-TIME_COLUMNS = ("seconds", "status", "stages_run")
+TIME_COLUMNS = ("seconds", "cpu_seconds", "status", "stages_run")
 
 
 @pytest.fixture(scope="module")
