@@ -71,7 +71,7 @@ def _timed(label, fn, client=None):
     t = time.perf_counter() - t0
     c, w = _cpu() - c0, {k: v - w0[k] for k, v in _cpu_of(client).items() if k in w0}
     after = _load()
-    in_tasks = float(out["cpu_seconds"].sum())
+    in_tasks = float(out["cpu_seconds"].sum()) if "cpu_seconds" in out else float("nan")  # (older organlab: none)
     workers = f", workers {' + '.join(f'{v:.1f}' for v in w.values())} s" if w else ""
     print(f"  {label:<26} {t:7.1f} s wall   CPU: this process {c:.1f} s{workers}, in the tasks {in_tasks:.1f} s"
           f"   (load {before:.1f} -> {after:.1f})", flush=True)
