@@ -78,6 +78,25 @@ def _timed(label, fn, client=None):
     return {"wall": t, "cpu": c, "workers": w, "in_tasks": in_tasks, "load": (before, after)}, out
 
 
+def _critical_path(table, workers):
+    """The serial run's times as a schedule's bounds: the longest chain (a threshold's shared stages, then its
+    longest task) and the total over the workers; the wall time of ``workers`` cores is at least the larger."""
+    prefix_stages = ("silhouettes", "poses", "carving")
+    chains, total = [], 0.0
+    for t, rows in table.groupby("threshold", sort=True):
+        first = rows[rows["stages_run"].str.contains("silhouettes")]
+        shared = sum(float(first[f"time_{k}_s"].iloc[0]) for k in prefix_stages if f"time_{k}_s" in first and len(first))
+        own = rows["seconds"].to_numpy(float).copy()
+        own[rows["stages_run"].str.contains("silhouettes").to_numpy()] -= shared
+        chains.append((shared + own.max(), t, shared))
+        total += float(rows["seconds"].sum())
+    longest, t, shared = max(chains)
+    print(f"  critical path (serial run's times): threshold {t:g}'s shared stages {shared:.1f} s + its longest task "
+          f"{longest - shared:.1f} s = {longest:.1f} s; all settings {total:.1f} s / {workers} workers = "
+          f"{total / workers:.1f} s: a wall time of at least {max(longest, total / workers):.1f} s, "
+          f"{max(longest, total / workers) / total:.2f} of the serial")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--workers", type=int, default=2)
@@ -146,6 +165,7 @@ def main(argv=None):
         pairs = [p["wall"] / q["wall"] for p, q in zip(runs["parallel"], runs["serial"])]
         print(f"  per setting: serial {t_serial / n:.1f} s, parallel {t_par / n:.1f} s wall; each pair's ratio "
               f"{', '.join(f'{x:.2f}' for x in pairs)}")
+        _critical_path(ref, a.workers)
         rec = df.attrs["recommended"]
         print(f"  recommended: {rec['name']}: {rec['reason']}")
         print(f"RATIO parallel / serial wall = {t_par / t_serial:.2f} (target <= 0.65): best of {a.repeat}, serial "

@@ -135,17 +135,20 @@ def dask_client(*, client=None, scheduler=None, workers=None):
         finally:
             c.close()
         return
+    import copy
     import logging
 
     import dask
 
     n = workers if workers is not None else (os.cpu_count() or 1)
-    # the nannies read their environment and configuration now, and keep them for the workers they restart
     with dask.config.set(WORKER_CONFIG):
+        # the nannies read their environment now and keep it for the workers they restart; their workers'
+        # configuration is given as a copy (a nanny keeps a reference to the live one, which the context restores)
+        config = {"distributed": copy.deepcopy(dask.config.get("distributed"))}
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1", scheduler_port=0,
                                dashboard_address=None, env=dict(WORKER_ENV), silence_logs=logging.ERROR,
                                # the scheduler's HTTP routes (health, metrics) on a free port of 127.0.0.1, not :8787
-                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, config=config)
         c = Client(cluster)
     try:
         yield c
