@@ -1,9 +1,10 @@
 """A 12-setting sweep of the sample session: a LocalCluster of worker processes against the serial fallback.
 
 The sweep: thresholds 10, 15, ..., 35 grey levels x methods hull and coloring at 2 mm (the default
-finished surface and AAA measures), i.e. 6 tasks of 2 settings that share their silhouettes and
-carving.  Both runs use one calibration, computed before (not timed), so their results can be
-compared bit for bit (they are: checked at the end).
+finished surface and AAA measures): 6 shared-prefix tasks (a threshold's silhouettes, poses and
+carving) and 12 tasks that go on from them, one per setting.  Both runs use one calibration,
+computed before (not timed), so their results can be compared bit for bit (they are: checked at
+the end).
 
 Timed: ``organlab.batch.sweep`` with ``workers=0`` (in this process, one numba thread, as every
 task runs) and with a running ``LocalCluster`` of ``--workers`` processes (one thread each).  Both
@@ -12,7 +13,10 @@ the ratio compares the sweeps, not start-up; the cluster's start-up is printed a
 may be shared: serial and parallel runs alternate (``--repeat`` pairs, default 3; the best wall
 time of each is kept), the 1-minute load average before and after each run is printed with it,
 and so is the CPU time (user + sys) of this process and of each worker: the busiest worker's CPU
-against the serial run's is what the ratio would be with a core for each worker.
+against the serial run's is what the ratio would be with a core for each worker and nothing else
+running; "in the tasks" is the CPU the tasks measured themselves (``cpu_seconds`` in the table),
+the rest of a worker's is Dask's.  The critical path (a threshold's shared stages and its longest
+task, in the last parallel run's task stream) and each worker's idle time show how well it was spread.
 
 The last line is the answer: ``RATIO parallel / serial wall = ...`` with the load average during the
 runs (the ratio means what it says only on an otherwise idle machine: load below ~0.5 before it starts).
@@ -78,23 +82,39 @@ def _timed(label, fn, client=None):
     return {"wall": t, "cpu": c, "workers": w, "in_tasks": in_tasks, "load": (before, after)}, out
 
 
-def _critical_path(table, workers):
-    """The serial run's times as a schedule's bounds: the longest chain (a threshold's shared stages, then its
-    longest task) and the total over the workers; the wall time of ``workers`` cores is at least the larger."""
-    prefix_stages = ("silhouettes", "poses", "carving")
-    chains, total = [], 0.0
-    for t, rows in table.groupby("threshold", sort=True):
-        first = rows[rows["stages_run"].str.contains("silhouettes")]
-        shared = sum(float(first[f"time_{k}_s"].iloc[0]) for k in prefix_stages if f"time_{k}_s" in first and len(first))
-        own = rows["seconds"].to_numpy(float).copy()
-        own[rows["stages_run"].str.contains("silhouettes").to_numpy()] -= shared
-        chains.append((shared + own.max(), t, shared))
-        total += float(rows["seconds"].sum())
-    longest, t, shared = max(chains)
-    print(f"  critical path (serial run's times): threshold {t:g}'s shared stages {shared:.1f} s + its longest task "
-          f"{longest - shared:.1f} s = {longest:.1f} s; all settings {total:.1f} s / {workers} workers = "
-          f"{total / workers:.1f} s: a wall time of at least {max(longest, total / workers):.1f} s, "
-          f"{max(longest, total / workers) / total:.2f} of the serial")
+def _schedule(stream):
+    """The last parallel run's schedule from Dask's task stream (the workers' wall times): each worker's busy
+    time and its idle time before the last task ends, and the longest chain (a threshold's shared stages, then
+    the longest task that went on from them: a task's prefix is the last one submitted before it)."""
+    spans = {}
+    for t in stream:
+        for ss in t["startstops"]:
+            if ss["action"] == "compute":
+                spans[t["key"]] = (t["worker"], ss["start"], ss["stop"])
+    if not spans:
+        return
+    t0 = min(a for _, a, _ in spans.values())
+    end = max(b for _, _, b in spans.values())
+    busy = {}
+    for w, a, b in spans.values():
+        busy[w] = busy.get(w, 0.0) + b - a
+    prefixes = sorted((int(k.split("-")[2]), b - a) for k, (_, a, b) in spans.items() if k.startswith("organlab-prefix-"))
+    chains = {}
+    for k, (_, a, b) in spans.items():
+        if k.startswith("organlab-task-"):
+            i = int(k.split("-")[2])
+            mine = [p for p in prefixes if p[0] <= i]
+            if mine:
+                j, shared = mine[-1]
+                chains[j] = max(chains.get(j, (0.0, shared))[0], b - a), shared
+    idle = ", ".join(f"{end - t0 - v:.1f}" for v in busy.values())
+    line = (f"  schedule of the last parallel run (workers' wall time): busy {' + '.join(f'{v:.1f}' for v in busy.values())} s "
+            f"in {end - t0:.1f} s (idle {idle} s)")
+    if chains:
+        task, shared = max(chains.values(), key=lambda c: c[0] + c[1])
+        line += (f"; longest chain: shared stages {shared:.1f} s + task {task:.1f} s = {shared + task:.1f} s "
+                 f"({(shared + task) / (end - t0):.2f} of the run)")
+    print(line)
 
 
 def main(argv=None):
@@ -140,10 +160,14 @@ def main(argv=None):
                 shutil.rmtree(out, ignore_errors=True)
                 return ob.sweep(session, GRID, settings=settings, out=out, calibration=cal, client=client, plots=False)
 
+            from distributed import get_task_stream
+
             for _ in range(a.repeat):  # interleaved: both see the same load
                 r, ref = _timed("serial (workers=0)", serial)
                 runs["serial"].append(r)
-                r, df = _timed(f"LocalCluster ({a.workers} workers)", parallel, client)
+                with get_task_stream(client) as ts:
+                    r, df = _timed(f"LocalCluster ({a.workers} workers)", parallel, client)
+                stream = ts.data
                 runs["parallel"].append(r)
         best = {k: min(v, key=lambda r: r["wall"]) for k, v in runs.items()}
         t_serial, t_par = best["serial"]["wall"], best["parallel"]["wall"]
@@ -165,7 +189,7 @@ def main(argv=None):
         pairs = [p["wall"] / q["wall"] for p, q in zip(runs["parallel"], runs["serial"])]
         print(f"  per setting: serial {t_serial / n:.1f} s, parallel {t_par / n:.1f} s wall; each pair's ratio "
               f"{', '.join(f'{x:.2f}' for x in pairs)}")
-        _critical_path(ref, a.workers)
+        _schedule(stream)
         rec = df.attrs["recommended"]
         print(f"  recommended: {rec['name']}: {rec['reason']}")
         print(f"RATIO parallel / serial wall = {t_par / t_serial:.2f} (target <= 0.65): best of {a.repeat}, serial "
