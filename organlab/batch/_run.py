@@ -1,7 +1,8 @@
 """Running tasks: on a Dask cluster (local worker processes or a lab's scheduler), or in this process.
 
 The client prepares each session once (:func:`~organlab.batch._task.prepare`),
-scatters it to the workers once, submits one task per group of settings and
+scatters it to the workers once, hands out the tasks (shared first stages,
+then the settings that go on from them) one per free worker thread, and
 writes each result it gets back into its own folder atomically.  A worker
 that dies takes its task with it; the scheduler runs it again on another
 worker (``distributed.scheduler.allowed-failures`` times); the results that
@@ -20,6 +21,7 @@ from pathlib import Path
 
 from ..errors import OrganlabError
 from ..preflight import atomic_output_dir
+from ._plan import _cost
 from ._task import run_prefix, run_task
 
 __all__ = ["Job", "execute", "dask_client", "finished", "write_result", "clean_partial", "start_libraries", "worker_plugin"]
@@ -277,8 +279,6 @@ def _distributed(jobs, shared, client, files, on_result):
     and released when its last task is back.
     """
     from dask.distributed import as_completed
-
-    from ._plan import _cost
 
     client.register_plugin(worker_plugin(), name="organlab-start-libraries")
     order = {id(job): i for i, job in enumerate(jobs)}
