@@ -19,7 +19,9 @@ the rest of a worker's is Dask's.  The critical path (a threshold's shared stage
 task, in the last parallel run's task stream) and each worker's idle time show how well it was spread.
 
 The last line is the answer: ``RATIO parallel / serial wall = ...`` with the load average during the
-runs (the ratio means what it says only on an otherwise idle machine: load below ~0.5 before it starts).
+runs (the ratio means what it says only on an otherwise idle machine: load below ~0.5 before it starts;
+with the kernel's autogroup scheduling, other sessions' load holds the two workers to the one share of
+the cores the serial run had, and the ratio tends to 1 whatever the code does: docs/scale.md).
 The line before it prints the CPU figures: the serial run's, the workers' (in their tasks and in all),
 and the busiest worker's CPU against the serial run's.  About 3-4 minutes on an idle 2-core machine
 with the default ``--repeat 3``.
