@@ -60,7 +60,7 @@ def _finished_entry(folder, settings_dict):
     report = json.loads((folder / "report.json").read_text())
     meta = json.loads((folder / SWEEP_FILE).read_text())
     return {"settings": settings_dict, "report": report, "files": None, "seconds": meta.get("seconds", float("nan")),
-            "error": None, "status": "finished before"}
+            "cpu_seconds": float("nan") if meta.get("cpu_seconds") is None else meta["cpu_seconds"], "error": None, "status": "finished before"}
 
 
 def _check_memory(session, settings, limit):

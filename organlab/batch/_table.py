@@ -25,7 +25,8 @@ def row_of(session_name, name, entry):
     ``agreement_worst_iou`` (model outline against the silhouettes, over the
     views), ``worst_view``, ``n_warnings``, ``warnings``, ``watertight``,
     ``faces``, ``min_angle_deg``, ``faces_below_20deg`` (the finished surface),
-    ``seconds`` (this setting's wall time), ``stages_run`` (the stages
+    ``seconds`` (this setting's wall time), ``cpu_seconds`` (the CPU time
+    of the process that ran it meanwhile), ``stages_run`` (the stages
     computed for it, the others kept from the setting before it in its task;
     empty for a result finished before) and ``time_<stage>_s`` (the time
     each stage took where it ran), ``error``.
@@ -61,6 +62,7 @@ def row_of(session_name, name, entry):
         min_angle_deg=final.get("min_angle_deg", _NAN),
         faces_below_20deg=final.get("faces_below_20deg", _NAN),
         seconds=float(entry.get("seconds", _NAN)),
+        cpu_seconds=float(entry.get("cpu_seconds", _NAN)),
         stages_run=",".join(entry.get("stages_run", ())),
     )
     for stage, t in rep.get("timings_s", {}).items():
