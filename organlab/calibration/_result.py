@@ -783,7 +783,7 @@ def _names_list(value, pr, key, allowed=None):
 
 def _intrinsics_from(cam_d, camera, pr):
     images = _per_image(cam_d.get("images"), pr, "camera.images")
-    rms = pr.number(cam_d.get("rms_px"), "camera.rms_px")
+    rms = pr.number(cam_d.get("rms_px"), "camera.rms_px", required=True)  # summary() and verify() use it
     std = _std(cam_d.get("std"), pr, "camera.std", {"fc": (2,), "cc": (2,), "alpha_c": (), "kc": (5,)})
     if "alpha_c" in std:
         std["alpha_c"] = float(std["alpha_c"])
@@ -810,7 +810,7 @@ def _turntable_from(tt_d, camera, pr):
     per, _, corners, angles = _entries(images, pr, "turntable.images", angle=True)
     return TurntableCalibration(
         camera=camera,
-        rms_px=pr.number(tt_d.get("rms_px"), "turntable.rms_px"),
+        rms_px=pr.number(tt_d.get("rms_px"), "turntable.rms_px", required=True),
         per_image_rms=per,
         flagged=_names_list(tt_d.get("flagged"), pr, "turntable.flagged"),
         rejected=_reasons(tt_d.get("rejected"), pr, "turntable.rejected"),

@@ -170,7 +170,7 @@ def measure(mesh: Mesh) -> MeshMeasures:
     >>> ball = x**2 + y**2 + z**2 <= 20.0**2  # a sphere of radius 20 mm: 33 510 mm^3
     >>> m = ol.measure(ol.finish_surface(ol.mesh_from_field(ball, grid), voxel_size=2.0).mesh)
     >>> round(m.volume_mm3), round(m.area_mm2), m.watertight  # the sphere: 33 510 mm^3, 5 027 mm^2
-    (33297, 5053, True)
+    (33297, 5054, True)
     """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be an organlab.surface.Mesh, got {type(mesh).__name__}")
