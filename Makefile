@@ -42,11 +42,11 @@ demo: $(STAMP)
 
 # The suite on TEST_WORKERS processes (pytest-xdist; the machine's 2 cores by default), each test file whole on one
 # of them (--dist loadfile: a file's module fixtures are made once), the longest files first (tests/conftest.py's
-# FILE_SECONDS; --no-loadscope-reorder keeps that order).  TEST_WORKERS=0 runs it in this process.
+# FILE_SECONDS; --no-loadscope-reorder keeps that order); it ends with the 15 slowest tests.  TEST_WORKERS=0 runs it in this process.
 TEST_WORKERS ?= 2
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_carving.py
