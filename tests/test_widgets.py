@@ -16,7 +16,7 @@ import pytest
 
 from organlab.calibration import calibrate_intrinsics, fit_intrinsics
 from organlab.carving import hull_field
-from organlab.errors import CalibrationError
+from organlab.errors import CalibrationError, OrganlabError
 from organlab.grid import VoxelGrid
 from organlab.session import load_session
 from organlab.silhouette import Silhouette, silhouette, silhouettes
@@ -255,3 +255,30 @@ def test_carving_tuner_colours_as_the_pipeline(session, sils, truth):
     w["color_threshold"].value = 30.0
     assert not w["color_auto"].value and tuner.color_threshold == 30.0
     assert tuner.result["color_threshold"] == 30.0 and "30.0:" in w["summary"].value
+
+
+@pytest.mark.slow
+def test_carving_tuner_offers_the_photo_method(session, sils, truth):
+    """The tuner runs issue 22's photo method through the engine, its slider in the NCC gain's range."""
+    from organlab.camera import Camera
+    from organlab.coloring import DEFAULT_PHOTO_THRESHOLD
+
+    c = truth["camera"]
+    cameras = [Camera(c["K"], c["dist"], v["R"], v["t"], tuple(c["image_size"])) for v in truth["views"]]
+    views = range(0, 36, 2)
+    hull = CarvingTuner.from_session(session, cameras, sils, views=views, voxel_size=2.0).run()
+    tuner = CarvingTuner.from_session(session, cameras, sils, views=views, voxel_size=2.0, color_threshold="auto",
+                                      method="photo")
+    assert tuner.settings().method == "photo"
+    r = tuner.run()
+    assert r["reconstruction"].settings.method == "photo"
+    assert r["color_threshold"] == pytest.approx(DEFAULT_PHOTO_THRESHOLD)
+    assert r["voxel_volume_mm3"] <= hull["voxel_volume_mm3"]  # photo only carves the hull
+    # the sample has next to nothing the silhouettes miss: within 1 % of the hull's volume
+    assert r["voxel_volume_mm3"] >= 0.99 * hull["voxel_volume_mm3"]
+    tuner.widget()
+    w = tuner.controls["color_threshold"]
+    assert (w.min, w.max) == (0.05, 1.0) and w.value == pytest.approx(DEFAULT_PHOTO_THRESHOLD)
+    assert f"{DEFAULT_PHOTO_THRESHOLD:.2f} (automatic)" in tuner.controls["summary"].value
+    with pytest.raises(OrganlabError, match="method must be"):
+        CarvingTuner.from_session(session, cameras, sils, views=views, method="hull")

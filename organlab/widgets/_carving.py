@@ -43,12 +43,17 @@ class CarvingTuner:
     tolerance : int
         Views allowed to disagree before a voxel is carved.
     color_threshold : float, 'auto' or None
-        Photo-consistency threshold (grey levels), ``'auto'`` for the
-        automatic one (measured from the image noise), None = no colour
-        test.  The colour test runs as ``organlab reconstruct`` runs it
+        Photo-consistency threshold in the unit of ``method``
+        (:func:`organlab.engine.color_threshold_range`: grey levels, or
+        the NCC gain for ``'photo'``), ``'auto'`` for the automatic one
+        (measured from the image noise; ``'photo'``'s default gain), None =
+        no colour test.  The colour test runs as ``organlab reconstruct`` runs it
         (:data:`organlab.coloring.PIPELINE_OPTIONS`: exposure, shading
         measure, automatic support, silhouette guard), so a low threshold
         widens the support instead of digging through the specimen.
+    method : {'coloring', 'space_carving', 'photo'}
+        The colouring method of the colour test (the engine's
+        ``Settings.method``); ``'photo'`` is the one for textured specimens.
     reference_volume : float, optional
         The specimen's true volume, mm^3, to report the error against.
     angles_deg : sequence of float, optional
@@ -69,8 +74,8 @@ class CarvingTuner:
 
     def __init__(self, images: Sequence[np.ndarray], silhouettes: Sequence[Silhouette], cameras: Sequence[Camera],
                  roi_min: Sequence[float], roi_max: Sequence[float], *, voxel_size: float = 2.0, tolerance: int = 0,
-                 color_threshold: float | str | None = None, reference_volume: float | None = None,
-                 angles_deg: Sequence[float] | None = None):
+                 color_threshold: float | str | None = None, method: str = "coloring",
+                 reference_volume: float | None = None, angles_deg: Sequence[float] | None = None):
         n = len(cameras)
         if len(silhouettes) != n or len(images) != n:
             raise OrganlabError(f"got {len(images)} images, {len(silhouettes)} silhouettes and {n} cameras: need one of each per view")
@@ -85,7 +90,10 @@ class CarvingTuner:
                 or (not isinstance(color_threshold, bool) and isinstance(color_threshold, (int, float))
                     and color_threshold > 0)):
             raise OrganlabError(f"color_threshold must be a number > 0, 'auto' or None, got {color_threshold!r}")
+        if method not in ("coloring", "space_carving", "photo"):
+            raise OrganlabError(f"method must be 'coloring', 'space_carving' or 'photo', got {method!r}")
         self.color_threshold = color_threshold
+        self.method = method
         self.reference_volume = reference_volume
         self.angles_deg = None if angles_deg is None else [float(a) for a in angles_deg]
         self.engine = Engine.from_views(self.images, self.silhouettes, self.cameras)
@@ -116,7 +124,7 @@ class CarvingTuner:
         """The engine's settings of the current parameters."""
         t = self.color_threshold
         return Settings(voxel_size=self.voxel_size, tolerance=self.tolerance, finish=False, measure=False,
-                        method="hull" if t is None else "coloring", color_threshold=None if t in (None, "auto") else float(t),
+                        method="hull" if t is None else self.method, color_threshold=None if t in (None, "auto") else float(t),
                         roi=(tuple(map(float, self.roi_min)), tuple(map(float, self.roi_max))))
 
     def run(self) -> dict:
@@ -144,12 +152,16 @@ class CarvingTuner:
         text = (
             f"{self.voxel_size:g} mm voxels, tolerance {self.tolerance}, colour test "
             + ("off" if r["color_threshold"] is None else
-               f"{r['color_threshold']:.1f}" + (" (automatic)" if self.color_threshold == "auto" else ""))
+               f"{r['color_threshold']:.{self._digits()}f}" + (" (automatic)" if self.color_threshold == "auto" else ""))
             + f": mesh volume {r['volume_mm3'] / 1000:.2f} cm3"
         )
         if r["error_pct"] is not None:
             text += f" ({r['error_pct']:+.2f} % vs reference)"
         return text + f", agreement (IoU) worst view {r['agreement'].min():.3f}, mean {r['agreement'].mean():.3f}"
+
+    def _digits(self) -> int:
+        """Decimals that show a colour threshold in its unit (grey levels 1, an NCC gain 2)."""
+        return 1 if color_threshold_range(self.method).step >= 0.1 else 2
 
     # ---------------------------------------------------------- pictures
     def mesh_picture(self, *, window_size: tuple = (640, 560)) -> np.ndarray:
@@ -197,7 +209,8 @@ class CarvingTuner:
         """
         w = ipywidgets()
         auto = self.color_threshold == "auto"
-        rng = color_threshold_range("coloring")  # the tuner colours with method 'coloring'
+        rng = color_threshold_range(self.method)  # the slider's bounds, step and unit for this method
+        start = 18.0 if rng.default is None else rng.default  # where the slider rests before a run
         c = self.controls = {
             "voxel_size": w.FloatSlider(value=self.voxel_size, min=1.0, max=6.0, step=0.5, description="voxel (mm)",
                                         continuous_update=False),
@@ -205,7 +218,7 @@ class CarvingTuner:
                                      description="tolerance", continuous_update=False),
             "color": w.Checkbox(value=self.color_threshold is not None, description="colour test"),
             "color_auto": w.Checkbox(value=self.color_threshold is None or auto, description="automatic"),
-            "color_threshold": w.FloatSlider(value=18.0 if self.color_threshold in (None, "auto") else self.color_threshold,
+            "color_threshold": w.FloatSlider(value=start if self.color_threshold in (None, "auto") else self.color_threshold,
                                              min=rng.low, max=rng.high, step=rng.step, description="colour thr.",
                                              continuous_update=False),
             "summary": w.Label(""),
@@ -232,7 +245,7 @@ class CarvingTuner:
                 return
             if self.result["color_threshold"] is not None and self.color_threshold == "auto":
                 syncing.append(1)  # the slider shows the measured threshold
-                c["color_threshold"].value = round(self.result["color_threshold"] * 2) / 2
+                c["color_threshold"].value = round(self.result["color_threshold"] / rng.step) * rng.step
                 syncing.pop()
             self.last_figure = redraw(c["output"], self.figure)
 
