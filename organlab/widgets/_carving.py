@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..engine import Engine, Settings, color_threshold_range
+from ..engine import METHODS, Engine, Settings, color_threshold_range
 from ..errors import OrganlabError
 from ..figures import mesh_snapshot
 from ..session import Session
@@ -90,7 +90,7 @@ class CarvingTuner:
                 or (not isinstance(color_threshold, bool) and isinstance(color_threshold, (int, float))
                     and color_threshold > 0)):
             raise OrganlabError(f"color_threshold must be a number > 0, 'auto' or None, got {color_threshold!r}")
-        if method not in ("coloring", "space_carving", "photo"):
+        if method not in METHODS[1:]:  # the engine's colouring methods (all but 'hull')
             raise OrganlabError(f"method must be 'coloring', 'space_carving' or 'photo', got {method!r}")
         self.color_threshold = color_threshold
         self.method = method
