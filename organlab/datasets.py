@@ -4,7 +4,10 @@
   al., CVPR 2006; e.g. ``dinoSparseRing``): images, cameras in mm, the
   object's bounding box;
 * :func:`middlebury_silhouettes` -- silhouettes by the authors' recipe for
-  their dark-background sets (threshold, dilate, erode).
+  their dark-background sets (threshold, dilate, erode);
+* :func:`write_middlebury_session` -- a set's well-segmented views written
+  as an organlab session keyed against its black backdrop (published
+  cameras, no masks, no background frames).
 
 The silhouette of a reconstruction seen by one of the set's cameras, to
 compare with the photographs, is :func:`organlab.raster.model_mask`.
@@ -27,7 +30,7 @@ import numpy as np
 from .camera import Camera
 from .errors import OrganlabError
 
-__all__ = ["DatasetError", "MiddleburyData", "load_middlebury", "middlebury_silhouettes"]
+__all__ = ["DatasetError", "MiddleburyData", "load_middlebury", "middlebury_silhouettes", "write_middlebury_session"]
 
 
 class DatasetError(OrganlabError, ValueError):
@@ -208,3 +211,73 @@ def middlebury_silhouettes(images, *, threshold=0.19, dilate_px=10, erode_px=7, 
         else:
             out.append(np.clip(0.5 + (g - threshold) / soft_width, 0.0, 1.0).astype(np.float32))
     return out
+
+
+def write_middlebury_session(data, source, folder, *, margin_mm=4.0):
+    """Write a Middlebury set's good views as an organlab backdrop session (keyed against the border's colour).
+
+    The views listed as good (``data.good``) are copied into ``folder/views``
+    and ``folder/session.json`` gets their published cameras (``pose`` per
+    view, one ``camera.K``: the set's views share it), the set's bounding box
+    grown by ``margin_mm`` as the roi, and ``"backdrop": {"color": "border"}``:
+    organlab finds the silhouettes itself, by keying against the image
+    border's colour (no masks, no background frames).
+
+    Parameters
+    ----------
+    data : MiddleburyData
+        The set, from :func:`load_middlebury` (with a bounding box).
+    source : str or Path
+        Its folder (the images are copied from there).
+    folder : str or Path
+        Where the session goes (created; it must not hold a ``views`` folder yet).
+    margin_mm : float, keyword-only
+        The roi's margin around the bounding box, mm.
+
+    Returns
+    -------
+    list of int
+        The indices (into ``data``) of the views written, in order.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from organlab.camera import Camera
+    >>> import cv2
+    >>> src = Path(tempfile.mkdtemp())
+    >>> cv2.imwrite(str(src / "a.png"), np.zeros((4, 6, 3), np.uint8))
+    True
+    >>> cam = Camera(np.diag([5.0, 5.0, 1.0]), np.zeros(5), np.eye(3), [0.0, 0.0, 100.0], (6, 4))
+    >>> data = MiddleburyData([np.zeros((4, 6, 3), np.uint8)], [cam], np.array([[-1.0, -1, -1], [1, 1, 1]]),
+    ...                       ["a.png"], np.array([True]))
+    >>> write_middlebury_session(data, src, src / "session")
+    [0]
+    >>> sorted(p.name for p in (src / "session").iterdir())
+    ['session.json', 'views']
+    """
+    import shutil
+
+    from .session import write_json
+
+    if data.bbox is None:
+        raise DatasetError("write_middlebury_session: the set has no bounding box (README.txt); the roi needs one")
+    source, folder = Path(source), Path(folder)
+    good = [int(i) for i in np.flatnonzero(data.good)]
+    if not good:
+        raise DatasetError(f"{source}: no view is listed as having a good silhouette")
+    K = data.cameras[good[0]].K
+    if any(not np.allclose(data.cameras[i].K, K, rtol=1e-6, atol=1e-9) for i in good):
+        raise DatasetError(f"{source}: the views' K differ; a session has one camera (calibrate it per view instead)")
+    (folder / "views").mkdir(parents=True)
+    for i in good:
+        shutil.copy(source / data.names[i], folder / "views" / data.names[i])
+    h, w = data.images[good[0]].shape[:2]
+    write_json(folder / "session.json", {
+        "format": "organlab.session/1", "units": "mm", "image_size": [w, h],
+        "camera": {"K": K.tolist(), "dist": [0, 0, 0, 0, 0]},
+        "views": [{"image": f"views/{data.names[i]}", "angle_deg": 0.0,
+                   "pose": {"R": data.cameras[i].R.tolist(), "t": data.cameras[i].t.tolist()}} for i in good],
+        "roi": {"min": (data.bbox[0] - margin_mm).tolist(), "max": (data.bbox[1] + margin_mm).tolist()},
+        "backdrop": {"color": "border"},
+    })
+    return good
