@@ -6,10 +6,11 @@ segmented again with the model of the views together as a prior:
 1. the *prior*: the visual hull that survives up to ``TOLERANCE`` views
    carving it (:class:`organlab.carving.ProgressiveCarver`, bounding-box
    test, on a grid of about ``VOXEL_PX`` pixel footprints in the box that
-   the first pass's hull fills), projected into each view
-   (:func:`organlab.raster.model_mask`).  A part that one or two views
-   miss (a dark notch, a shaded rim, a dark paint patch) stays in this hull,
-   so it projects into the views that miss it;
+   the first pass's hull fills), projected into each view (its voxels'
+   boundary faces, found once a round, filled as
+   :func:`organlab.raster.model_mask` fills them).  A part that one or two
+   views miss (a dark notch, a shaded rim, a dark paint patch) stays in this
+   hull, so it projects into the views that miss it;
 2. the *colour evidence*: each view's difference image (the distance to the
    background model, grey levels, or Delta E to the backdrop) is compared
    with the background's own statistics, measured in a ring just outside the
@@ -49,7 +50,7 @@ import numpy as np
 from ..camera import Camera
 from ..carving import ProgressiveCarver
 from ..grid import VoxelGrid
-from ..raster import model_mask
+from ..raster import MeshRaster, voxel_boundary_quads
 
 #: Views that may carve a voxel of the prior (the hull of the others, ``TOLERANCE`` views allowed to miss a part).
 TOLERANCE = 2
@@ -281,13 +282,16 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
         rounds += 1
         changed = 0
         new = []
+        # the hull's boundary faces once per round, projected into every view (as raster.model_mask of the
+        # occupancy, which finds them again per view: 60 % of the step's time on the dino's 15 views)
+        raster = MeshRaster(*voxel_boundary_quads(hull, grid))
         for i, cam in enumerate(cameras):
             if not editable[i]:
                 new.append(cur[i])
                 continue
             fp = cam.pixel_footprint(np.asarray(grid.origin) + 0.5 * voxel * np.asarray(grid.shape))
             slack = int(math.ceil(2.5 * voxel / fp)) if math.isfinite(fp) and fp > 0 else 3
-            prior = model_mask(hull, cam, grid=grid)
+            prior = raster.mask(cam, np.shape(differences[i])[:2])
             m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack, regions=regions)
             changed += int(np.count_nonzero(m != cur[i]))
             new.append(m)
