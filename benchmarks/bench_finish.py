@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import os
 import resource
-import shutil
 import sys
 import tempfile
 import time
@@ -73,24 +72,11 @@ def _ious(mesh, cams, masks):
 
 
 def _dino_session(tmp):
-    from organlab.datasets import load_middlebury, middlebury_silhouettes
-    from organlab.session import write_json
+    from organlab.datasets import load_middlebury, middlebury_silhouettes, write_middlebury_session
 
     data = load_middlebury(DINO)
-    good = [i for i in range(len(data.names)) if data.good[i]]
-    cams, names = [data.cameras[i] for i in good], [data.names[i] for i in good]
-    (tmp / "views").mkdir(parents=True)
-    for n in names:
-        shutil.copy(DINO / n, tmp / "views" / n)
-    write_json(tmp / "session.json", {
-        "format": "organlab.session/1", "units": "mm", "image_size": [640, 480],
-        "camera": {"K": cams[0].K.tolist(), "dist": [0, 0, 0, 0, 0]},
-        "views": [{"image": f"views/{n}", "angle_deg": 0.0, "pose": {"R": c.R.tolist(), "t": c.t.tolist()}}
-                  for n, c in zip(names, cams)],
-        "roi": {"min": (data.bbox[0] - 4.0).tolist(), "max": (data.bbox[1] + 4.0).tolist()},
-        "backdrop": {"color": "border"},
-    })
-    return cams, middlebury_silhouettes([data.images[i] for i in good])
+    good = write_middlebury_session(data, DINO, tmp)
+    return [data.cameras[i] for i in good], middlebury_silhouettes([data.images[i] for i in good])
 
 
 def main(argv=None):

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from organlab.carving import carve_reference, hull_field
-from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes
+from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes, write_middlebury_session
 from organlab.raster import model_mask
 from organlab.grid import VoxelGrid
 from organlab.surface import mesh_from_volume
@@ -170,51 +170,79 @@ def test_dino_reprojected_hull_matches_photos(dino):
     assert vbox2 > vbox1 > vfld1
 
 
-@needs_data
-@pytest.mark.slow
-def test_dino_backdrop_joint_silhouettes_help(dino, tmp_path):
-    """The photos as a backdrop session (keyed, no masks, no frames), 2 mm, raw surface: the joint step against the
-    authors' masks, like with like (their closing and 3 px growth applied to our outline too) and plain (their
-    threshold and a 10 px closing, no growth).  The joint step keys the views again with the others' hull as a prior;
-    on keyed views it must not take the dark stand or the shadows for the specimen (the region rule did: 0.980 ->
-    0.972 like with like at 1 mm) and it brings back the outline the chin's shadow cost views 2-4."""
-    import shutil
-
-    from organlab.datasets import middlebury_silhouettes
+@pytest.fixture(scope="module")
+def backdrop(dino, tmp_path_factory):
+    """The photos as a backdrop session (keyed against the border's colour, no masks, no frames), 2 mm, the joint
+    step off and auto, 1 mm (the issue's resolution: the finished surface's promise holds there, at 2 mm finishing
+    moved a view's IoU by up to 0.018): one reconstruction each (raw and finished surface), shared by the tests below;
+    per run the
+    authors' masks compared with our raw and finished surfaces' outlines, like with like (their closing and 3 px growth
+    applied to our outline too) and plain (their threshold and a 10 px closing, no growth)."""
     from organlab.engine import Engine, Settings
-    from organlab.session import write_json
 
     data, masks, cams = dino
-    good = [n for n, g in zip(data.names, data.good) if g]
-    (tmp_path / "views").mkdir()
-    for n in good:
-        shutil.copy(DATA / n, tmp_path / "views" / n)
-    write_json(tmp_path / "session.json", {
-        "format": "organlab.session/1", "units": "mm", "image_size": [640, 480],
-        "camera": {"K": cams[0].K.tolist(), "dist": [0, 0, 0, 0, 0]},
-        "views": [{"image": f"views/{n}", "angle_deg": 0.0, "pose": {"R": c.R.tolist(), "t": c.t.tolist()}}
-                  for n, c in zip(good, cams)],
-        "roi": {"min": (data.bbox[0] - 4.0).tolist(), "max": (data.bbox[1] + 4.0).tolist()},
-        "backdrop": {"color": "border"},
-    })
-    plain = middlebury_silhouettes([data.images[i] for i in np.nonzero(data.good)[0]], dilate_px=10, erode_px=10)
-    eng = Engine(tmp_path)
-    got = {}
+    folder = tmp_path_factory.mktemp("dino") / "session"
+    good = write_middlebury_session(data, DATA, folder)
+    plain = middlebury_silhouettes([data.images[i] for i in good], dilate_px=10, erode_px=10)
+    eng = Engine(folder)
+    runs = {}
     for mode in ("off", "auto"):
-        rec = eng.run(Settings(voxel_size=2.0, finish=False, measure=False, joint_silhouettes=mode))
-        renders = [model_mask(rec.raw_mesh, c) for c in cams]
-        grown = middlebury_silhouettes([r.astype(np.uint8) * 255 for r in renders], threshold=0.5)
-        like = np.mean([(g & m).sum() / (g | m).sum() for g, m in zip(grown, masks)])
-        flat = np.mean([(r & m).sum() / (r | m).sum() for r, m in zip(renders, plain)])
-        width = [v["agreement"]["disagreement_width_px"] for v in rec.report["views"]]
-        got[mode] = (like, flat, width, rec.report["joint_silhouettes"])
-        print(f"{mode}: like with like {like:.4f}, plain {flat:.4f}, widest disagreement {max(width):.3f} px "
-              f"(views {np.argsort(width)[::-1][:3].tolist()}), joint {rec.report['joint_silhouettes']}")
-    off, on = got["off"], got["auto"]
-    assert on[3]["ran"] and on[3]["removed_px"] < 0.01 * on[3]["added_px"] + 500
-    # measured 2 mm: like with like 0.9741 -> 0.9758, plain 0.9662 -> 0.9704 (1 mm: 0.9796 -> 0.9805, 0.9728 -> 0.9760);
-    # the region rule on keyed views gave 0.980 -> 0.972 like with like at 1 mm
-    assert on[0] >= off[0] - 0.001 and on[1] >= off[1] + 0.001
-    # the chin: views 7-10 (dinoSR0009-0012) see it lit where views 1-3 (dinoSR0002-0004) carved it; measured widest
-    # disagreement of views 7-10: 1.475 px -> 0.290 px (1 mm: 1.43 -> 0.18)
-    assert max(on[2][7:11]) < 0.5 * max(off[2][7:11])
+        rec = eng.run(Settings(voxel_size=1.0, measure=False, joint_silhouettes=mode))
+        row = {"rec": rec, "width": [v["agreement"]["disagreement_width_px"] for v in rec.report["views"]]}
+        for surface, mesh in (("raw", rec.raw_mesh), ("finished", rec.mesh)):
+            renders = [model_mask(mesh, c) for c in cams]
+            grown = middlebury_silhouettes([r.astype(np.uint8) * 255 for r in renders], threshold=0.5)
+            row[surface] = (np.array([_iou(g, m)[0] for g, m in zip(grown, masks)]),
+                            np.array([_iou(r, m)[0] for r, m in zip(renders, plain)]))
+        runs[mode] = row
+        print(f"{mode}: like with like {row['raw'][0].mean():.4f} raw / {row['finished'][0].mean():.4f} finished, plain "
+              f"{row['raw'][1].mean():.4f} / {row['finished'][1].mean():.4f}, widest disagreement {max(row['width']):.3f} px "
+              f"(views {np.argsort(row['width'])[::-1][:3].tolist()}), joint {rec.report['joint_silhouettes']}")
+    return runs
+
+
+@needs_data
+@pytest.mark.slow
+def test_dino_backdrop_joint_silhouettes_help(backdrop):
+    """The joint step keys the views again with the others' hull as a prior; on keyed views it must not take the dark
+    stand or the shadows for the specimen (the region rule did: 0.980 -> 0.972 like with like at 1 mm)."""
+    off, on = backdrop["off"], backdrop["auto"]
+    assert off["rec"].report["views"][0]["silhouette_source"] == "backdrop"
+    j = on["rec"].report["joint_silhouettes"]
+    assert j["ran"] and not off["rec"].report["joint_silhouettes"]["ran"]
+    assert j["removed_px"] < 0.01 * j["added_px"] + 500
+    # measured 1 mm, raw surface: like with like 0.9796 -> 0.9805, plain 0.9728 -> 0.9760 (finished: 0.9790 -> 0.9805,
+    # 0.9722 -> 0.9755); the region rule on keyed views gave 0.980 -> 0.972 like with like.  The hull of the authors' own
+    # threshold-and-closing masks scores 0.9797 like with like at 1 mm (docs/silhouettes.md): the 1 mm bound
+    assert on["raw"][0].mean() >= off["raw"][0].mean() - 0.001
+    assert on["raw"][1].mean() >= off["raw"][1].mean() + 0.002
+    assert min(run[s][0].mean() for run in (off, on) for s in ("raw", "finished")) > 0.978
+    # issue 21's plain target 0.975: measured 0.9760 raw, 0.9755 finished with the joint step (0.9728, 0.9722 without)
+    assert on["finished"][1].mean() > 0.974 and on["raw"][1].mean() > 0.975
+
+
+@needs_data
+@pytest.mark.slow
+def test_dino_backdrop_chin_comes_back_from_its_rim(backdrop):
+    """Views 1-3 (dinoSR0002-0004) see the shadowed notch under the chin as dark as the backdrop and carve it from
+    views 7-10 (dinoSR0009-0012), which see it lit: the joint step's edge rule brings the carving views' outline back."""
+    off, on = backdrop["off"], backdrop["auto"]
+    # measured widest disagreement of views 7-10 at 1 mm: 1.429 px -> 0.184 px (2 mm: 1.475 -> 0.290); still above the
+    # 0.05 px flag limit (docs/silhouettes.md: the notch's pixels fail the edge rule's contrast test)
+    assert max(on["width"][7:11]) < 0.25 and max(on["width"][7:11]) < 0.2 * max(off["width"][7:11])
+
+
+@needs_data
+@pytest.mark.slow
+def test_dino_finished_surface_stays_on_the_raw(backdrop):
+    """The default finished surface projects like the raw marching-cubes surface in every view (issue 21: within
+    0.002 IoU), against the authors' plain masks and against our own silhouettes (report.json's raw_iou); like with
+    like (their closing and growth amplify an outline's change), the finished surface is not worse by more than that."""
+    for mode, run in backdrop.items():
+        plain = run["finished"][1] - run["raw"][1]
+        like = run["finished"][0] - run["raw"][0]
+        own = np.array([[v["agreement"]["raw_iou"], v["agreement"]["iou"]] for v in run["rec"].report["views"]])
+        # measured worst view, off / auto: plain -0.0016 / -0.0012, own -0.0016 / -0.0018, like -0.0012 / +0.0028
+        assert np.abs(plain).max() <= 0.002, (mode, plain.round(4))
+        assert np.abs(own[:, 1] - own[:, 0]).max() <= 0.002, (mode, own.round(4))
+        assert like.min() >= -0.002, (mode, like.round(4))
