@@ -124,3 +124,21 @@ def test_engine_setting_and_report(tmp_path):
     assert off.report["joint_silhouettes"] == {"mode": "off", "ran": False}
     assert "silhouette_joint" not in off.report["views"][0]
     assert abs(off.report["volume_mm3"] - rec.report["volume_mm3"]) <= 1e-3 * off.report["volume_mm3"]
+
+
+def test_the_prior_projects_as_model_mask_projects_it(scene):
+    """The joint step finds the prior hull's boundary faces once a round and fills them in every view
+    (raster.MeshRaster): the same pixels as raster.model_mask of the occupancy, which finds them per view."""
+    from organlab.raster import MeshRaster, model_mask, voxel_boundary_quads
+    from organlab.silhouette._joint import prior_hull
+
+    cams, _, _, cover = scene
+    masks = [c >= 0.5 for c in cover]
+    masks[3] = masks[3] & ~np.roll(masks[3], 7, axis=1)  # one view with a strip cut: the tolerant hull keeps it
+    grid, hull = prior_hull(masks, cams, BOX)
+    assert hull.sum() > 1000
+    raster = MeshRaster(*voxel_boundary_quads(hull, grid))
+    for cam, m in zip(cams, masks):
+        got = raster.mask(cam, m.shape)
+        assert got.sum() > 0.5 * m.sum()
+        np.testing.assert_array_equal(got, model_mask(hull, cam, grid=grid))

@@ -246,3 +246,37 @@ def test_dino_finished_surface_stays_on_the_raw(backdrop):
         assert np.abs(plain).max() <= 0.002, (mode, plain.round(4))
         assert np.abs(own[:, 1] - own[:, 0]).max() <= 0.002, (mode, own.round(4))
         assert like.min() >= -0.002, (mode, like.round(4))
+
+
+def test_write_middlebury_session(tmp_path):
+    """A set's good views become a backdrop session that organlab reads back: same cameras, roi = bbox + margin."""
+    import cv2
+
+    from organlab.camera import Camera
+    from organlab.datasets import MiddleburyData
+    from organlab.session import load_session
+
+    K = np.array([[500.0, 0, 32], [0, 500, 24], [0, 0, 1]])
+    R = np.array([[0.8, 0.6, 0.0], [-0.6, 0.8, 0.0], [0, 0, 1]])
+    cams = [Camera(K, np.zeros(5), R if i else np.eye(3), [1.0 * i, 0, 300.0], (64, 48)) for i in range(3)]
+    names = [f"v{i}.png" for i in range(3)]
+    for n in names:
+        cv2.imwrite(str(tmp_path / n), np.full((48, 64, 3), 40, np.uint8))
+    bbox = np.array([[-10.0, -5, -3], [10, 5, 3]])
+    data = MiddleburyData([np.zeros((48, 64, 3), np.uint8)] * 3, cams, bbox, names, np.array([True, False, True]))
+    assert write_middlebury_session(data, tmp_path, tmp_path / "s", margin_mm=2.0) == [0, 2]
+    s = load_session(tmp_path / "s")
+    assert [v.image.name for v in s.views] == ["v0.png", "v2.png"]
+    np.testing.assert_allclose([s.roi_min, s.roi_max], [bbox[0] - 2.0, bbox[1] + 2.0])
+    assert s.backdrop["color"] == "border" and s.image_size == (64, 48)
+    np.testing.assert_allclose(s.camera["K"], K)
+    for v, i in zip(s.views, (0, 2)):  # the published pose of each view (world to camera, mm)
+        np.testing.assert_allclose(v.pose[0], cams[i].R, atol=1e-12)
+        np.testing.assert_allclose(v.pose[1], cams[i].t)
+    with pytest.raises(FileExistsError):
+        write_middlebury_session(data, tmp_path, tmp_path / "s")
+    with pytest.raises(DatasetError, match="bounding box"):
+        write_middlebury_session(data._replace(bbox=None), tmp_path, tmp_path / "t")
+    other = cams[:2] + [Camera(K * [[1.1], [1.1], [1]], np.zeros(5), np.eye(3), [0, 0, 300.0], (64, 48))]
+    with pytest.raises(DatasetError, match="K differ"):
+        write_middlebury_session(data._replace(cameras=other), tmp_path, tmp_path / "u")
