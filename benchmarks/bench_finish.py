@@ -18,6 +18,8 @@ degrees (23.4), deviation mean 0.021 / max 0.31 voxel (0.032 / 0.67), worst view
 degrees (22.2), deviation 0.030 / 0.63 voxel (0.277 / 11.4), worst view +0.0011 (-0.0376);
 0.25 mm sample 18.9 s CPU (main 38.3), peak 1246 MB in this process (main 1039), 143 160 faces, 21.3 degrees,
 deviation 0.022 / 2.18 voxels (0.05 / 2.7).
+Again on main of 2026-12-03 (helper `dino`, loaded, best of 3): sample 1 mm 0.90 s, dino 1 mm 1.80 s, every
+other figure the same (the dino's session now from organlab.datasets.write_middlebury_session).
 """
 
 from __future__ import annotations
