@@ -29,6 +29,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import OrganlabError
+from .session import write_json
 
 __all__ = ["DatasetError", "MiddleburyData", "load_middlebury", "middlebury_silhouettes", "write_middlebury_session"]
 
@@ -256,8 +257,6 @@ def write_middlebury_session(data, source, folder, *, margin_mm=4.0):
     ['session.json', 'views']
     """
     import shutil
-
-    from .session import write_json
 
     if data.bbox is None:
         raise DatasetError("write_middlebury_session: the set has no bounding box (README.txt); the roi needs one")
