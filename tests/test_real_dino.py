@@ -223,6 +223,25 @@ def test_dino_backdrop_joint_silhouettes_help(backdrop):
 
 @needs_data
 @pytest.mark.slow
+def test_dino_like_with_like_bound_at_1mm(dino, backdrop):
+    """The like-with-like target (0.985) against what the authors' own silhouettes give at 1 mm: the hull of their
+    threshold-and-closing masks (their soft coverage), scored as ours is (projected, their closing and growth applied),
+    stays below it, and our keyed silhouettes with the joint step score as well as theirs."""
+    data, masks, cams = dino
+    imgs = [data.images[i] for i in np.nonzero(data.good)[0]]
+    soft = middlebury_silhouettes(imgs, dilate_px=10, erode_px=10, soft_width=0.1)
+    grid = VoxelGrid.from_roi(data.bbox[0] - 4.0, data.bbox[1] + 4.0, 1.0)
+    mesh = mesh_from_volume(hull_field(soft, cams, grid), grid)
+    grown = middlebury_silhouettes([model_mask(mesh, c).astype(np.uint8) * 255 for c in cams], threshold=0.5)
+    theirs = np.mean([_iou(g, m)[0] for g, m in zip(grown, masks)])
+    print(f"hull of the authors' plain masks, like with like at 1 mm: {theirs:.4f}")
+    # measured 0.9805 (binary masks 0.9797; 0.9850 at 0.5 mm); ours 0.9796 off, 0.9805 auto (0.9804 / 0.9809 at 0.5 mm)
+    assert 0.975 < theirs < 0.985
+    assert backdrop["auto"]["raw"][0].mean() >= theirs - 0.001
+
+
+@needs_data
+@pytest.mark.slow
 def test_dino_backdrop_chin_comes_back_from_its_rim(backdrop):
     """Views 1-3 (dinoSR0002-0004) see the shadowed notch under the chin as dark as the backdrop and carve it from
     views 7-10 (dinoSR0009-0012), which see it lit: the joint step's edge rule brings the carving views' outline back."""
