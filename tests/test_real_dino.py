@@ -174,7 +174,7 @@ def test_dino_reprojected_hull_matches_photos(dino):
 def backdrop(dino, tmp_path_factory):
     """The photos as a backdrop session (keyed against the border's colour, no masks, no frames), 2 mm, the joint
     step off and auto, 1 mm (the issue's resolution: the finished surface's promise holds there, at 2 mm finishing
-    moved a view's IoU by up to 0.018): one reconstruction each (raw and finished surface), shared by the tests below;
+    moved a view's like-with-like IoU by up to 0.018): one reconstruction each (raw and finished surface), shared by the tests below;
     per run the
     authors' masks compared with our raw and finished surfaces' outlines, like with like (their closing and 3 px growth
     applied to our outline too) and plain (their threshold and a 10 px closing, no growth)."""
