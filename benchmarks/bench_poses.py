@@ -69,6 +69,19 @@ def with_audit(s, truth, sd=0.03, seed=0):
     return s
 
 
+def _rot_err(Ra, Rb):
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+def _elev_t(R):
+    """The optical axis's angle below the table plane, degrees."""
+    return float(np.degrees(np.arcsin(-R[2, 2])))
+
+
+def _elev(cam):
+    return _elev_t(cam.R)
+
+
 def _cyl(c):
     return np.array([np.hypot(c[0], c[1]), c[2]])
 
@@ -127,6 +140,16 @@ def main(argv=None):
                   f"(modulo a common turn {np.median(em):.3f}/{em.max():.3f}); camera centre error {np.linalg.norm(cc - ct):.2f} -> {np.linalg.norm(cr - ct):.2f} mm "
                   f"(modulo a turn about the axis {np.linalg.norm(_cyl(cc) - _cyl(ct)):.2f} -> "
                   f"{np.linalg.norm(_cyl(cr) - _cyl(ct)):.2f} mm); slip {r.slip}; candidates {r.gate.get('candidates')}")
+            # against the cameras that rendered the views (for a bumped camera the table angles are right but
+            # every view turned with the camera): each view's rotation error, and the camera's distance to the
+            # axis, height and elevation (what the plate's rim measures)
+            rot0 = [_rot_err(c.R, np.array(v["R"])) for c, v in zip(cal.cameras(s), truth["views"])]
+            rot1 = [_rot_err(c.R, np.array(v["R"])) for c, v in zip(r.cameras, truth["views"])]
+            rho_t = np.hypot(*ct[:2])
+            print(f"  view rotation error median/max {np.median(rot0):.3f}/{np.max(rot0):.3f} -> {np.median(rot1):.3f}/{np.max(rot1):.3f} deg; "
+                  f"distance to the axis {np.hypot(*cc[:2]) - rho_t:+.2f} -> {np.hypot(*cr[:2]) - rho_t:+.2f} mm "
+                  f"(scale {np.hypot(*cr[:2]) / rho_t:.5f}), height {cc[2] - ct[2]:+.2f} -> {cr[2] - ct[2]:+.2f} mm, "
+                  f"elevation {_elev(cal.cameras(s)[0]) - _elev_t(Rt):+.3f} -> {_elev(r.cameras[0]) - _elev_t(Rt):+.3f} deg; plate {r.plate}")
         if a.voxel_size:
             from organlab.pipeline import reconstruct
 
