@@ -10,8 +10,8 @@ fixes the two.
 Method: the rim circle (radius ``R`` at height ``z``, world frame) is projected through the
 full camera model (distortion included) at 720 points; at each, the image's intensity profile
 across the projected rim (along its normal, bilinear, 1/8 px steps) locates the edge at the
-centroid of the intensity drop (the plate's top is brighter than what lies beyond the rim:
-the backdrop on the far side, the plate's side wall on the near side).  Points whose profile
+centroid of the intensity step (the plate's top against the backdrop on the far side, against
+the plate's side wall on the near side; a drop or a rise, whichever is stronger).  Points whose profile
 would reach the side wall's lower edge or leave the image are not used.  The camera's centre
 ``C`` is moved within the unseen family ``C -> s C + h e_z`` (rotation kept) to minimise the
 edges' offsets along the normals (Gauss-Newton, robust re-weighting; the edges re-measured at
@@ -93,6 +93,9 @@ def _edges(grey, p, nrm, gap):
     use = np.abs(offs)[None, :] <= half[:, None]
     drop = -np.gradient(prof, STEP_PX, axis=1)
     drop = np.where(use, drop, 0.0)
+    # a plate darker than what lies beyond its rim: the edge is a rise
+    rise = (-drop).max(axis=1) > drop.max(axis=1)
+    drop[rise] = -drop[rise]
     peak = drop.max(axis=1)
     wgt = np.where(drop > 0.25 * peak[:, None], drop, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -56,6 +56,9 @@ MAX_ANGLE_DEG = 15.0
 AUDIT_FLAG_DEG = 0.2
 #: The plate's rim is used only when its edges fit the refined camera within this RMS, px.
 RIM_MAX_PX = 1.0
+#: ... and when the silhouettes' tangents agree about as well with it: their median view RMS at most this factor
+#: (+0.02 px) of the fit without the rim (bump_aaa7 640 x 480: 0.070 -> 0.0xx px).
+RIM_TANGENT_GAIN = 1.2
 
 
 @dataclass
@@ -302,6 +305,12 @@ def _with_plate(pb, model, x, cam0, background, plate):
     x2, rms, npts = got
     if not rms < RIM_MAX_PX:
         entry.update(why=f"the plate's rim fits badly (RMS {rms:.2f} px > {RIM_MAX_PX} px)", rim_rms_px=_f(rms))
+        return x, entry
+    t_before, t_after = float(np.nanmedian(pb.view_rms(x))), float(np.nanmedian(pb.view_rms(x2)))
+    entry.update(tangent_median_px=[_f(t_before), _f(t_after)])
+    if t_after > RIM_TANGENT_GAIN * t_before + 0.02:  # the rim pulls against the silhouettes
+        entry["why"] = (f"the plate's rim disagrees with the silhouettes (tangent median {t_before:.3f} -> {t_after:.3f} px): "
+                        f"a plate off the axis, tilted, or a wrong turntable_plate")
         return x, entry
     R1, t1 = model.poses(x2)
     c_after = cam0.with_pose(R1[0], t1[0]).center
