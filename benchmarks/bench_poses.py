@@ -9,6 +9,7 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
   linearly to +3 degrees over the turn plus 0.3 degrees of jitter per stop;
 * ``driftb_dented``: the same with another render (seed) and another drift;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
+* ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
 * ``drift_dented+audit`` / ``drift_aaa7+audit``: the drifting tables with the capture's angle
   audit (emulated: each stop's true angle plus the audit's error, sd 0.03 degrees; docs/capture.md
@@ -51,6 +52,9 @@ def scenes(n=36, size=(640, 480)):
         "ok_aaa7": dict(base, seed=1, specimen="aaa-7"),
         "drift_aaa7": dict(base, seed=2, specimen="aaa-7", true_angles_deg=drift_angles(n, 5)),
         "bump_aaa7": dict(base, seed=3, specimen="aaa-7", camera_bump={"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)}),
+        # another bump (other direction, another render and AAA), for the plate's rim chosen on the one above
+        "bumpb_aaa11": dict(base, seed=13, specimen="aaa-11",
+                            camera_bump={"rotation_deg": (-0.4, -0.5, 0.3), "translation_mm": (-0.8, 1.5, -0.9)}),
         "slip_aaa7": dict(base, seed=4, specimen="aaa-7", slip={"view": n // 2, "translation_mm": (1.2, -0.9), "rotation_deg": 0.0}),
         "drift_dented": dict(base, seed=6, specimen="dented", true_angles_deg=drift_angles(n, 8)),
         # another render and another drift, for the defaults chosen on the one above
