@@ -40,7 +40,8 @@ MIN_POINTS = 60
 class PlateFit:
     """What :func:`fit_plate` measured.
 
-    ``scale`` and ``height_mm`` map the camera's centre ``C -> scale * C + height_mm * e_z``;
+    ``scale`` and ``height_mm`` map the camera's centre ``C -> scale * C + height_mm * e_z``, ``pitch_rad``
+    turns it about its own X axis (when fitted);
     ``rms_px`` the edges' RMS offset from the fitted rim, ``n_points`` the rim points used.
     """
 
@@ -50,6 +51,7 @@ class PlateFit:
     n_points: int
     sd_scale: float
     sd_height_mm: float
+    pitch_rad: float = 0.0
 
 
 def _grey(image):
@@ -75,44 +77,52 @@ def _rim_geometry(camera, radius, z, wall_mm, n=N_RIM):
     return p, nrm, gap
 
 
-def _edges(grey, p, nrm, gap):
-    """Edge offsets along the normals, px (``nan`` where no clean edge)."""
+def _edges(grey, p, nrm, gap, half_px=HALF_PX, local_px=None):
+    """Edge offsets along the normals, px (``nan`` where no clean edge): the strongest step within
+    ``+-half_px``, located at the centroid of its gradient (within ``local_px`` of its peak, when given:
+    the coarse search, where the plate's rings or the side wall's lower edge may be in the window)."""
     from scipy.ndimage import map_coordinates
 
     h, w = grey.shape
-    half = np.full(len(p), HALF_PX)
+    half = np.full(len(p), float(half_px))
     near = np.isfinite(gap)
-    half[near] = np.minimum(HALF_PX, 0.5 * gap[near] - 0.75)
+    half[near] = np.minimum(half_px, 0.5 * gap[near] - 0.75)
     ok = half >= 1.25
-    offs = np.arange(-HALF_PX, HALF_PX + 1e-9, STEP_PX)
+    offs = np.arange(-half_px, half_px + 1e-9, STEP_PX)
     pts = p[:, None, :] + offs[None, :, None] * nrm[:, None, :]
     inside = (pts[..., 0] >= 1) & (pts[..., 0] <= w - 2) & (pts[..., 1] >= 1) & (pts[..., 1] <= h - 2)
-    ok &= inside[:, 0] & inside[:, -1] & np.isfinite(p).all(1)
+    window = np.abs(offs)[None, :] <= half[:, None]
+    use = window & inside
+    ok &= np.isfinite(p).all(1) & (use.sum(1) == window.sum(1))
     prof = map_coordinates(grey, [np.nan_to_num(pts[..., 1]).ravel(), np.nan_to_num(pts[..., 0]).ravel()],
                            order=1, mode="nearest").reshape(pts.shape[:2])
-    use = np.abs(offs)[None, :] <= half[:, None]
     drop = -np.gradient(prof, STEP_PX, axis=1)
     drop = np.where(use, drop, 0.0)
     # a plate darker than what lies beyond its rim: the edge is a rise
     rise = (-drop).max(axis=1) > drop.max(axis=1)
     drop[rise] = -drop[rise]
-    peak = drop.max(axis=1)
-    wgt = np.where(drop > 0.25 * peak[:, None], drop, 0.0)
+    k = drop.argmax(axis=1)
+    peak = drop[np.arange(len(p)), k]
+    local = np.abs(offs[None, :] - offs[k][:, None]) <= (np.inf if local_px is None else local_px)
+    wgt = np.where(local & (drop > 0.25 * peak[:, None]), drop, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         o = (wgt * offs[None, :]).sum(1) / wgt.sum(1)
-    # a clean step: most of the drop inside the window, well away from its ends
+    # a clean step, well away from the window's ends
     ok &= peak * STEP_PX > 2.0
     ok &= np.abs(o) < half - 1.0
     return np.where(ok, o, np.nan)
 
 
-def _camera_at(camera, scale, height):
+def _camera_at(camera, scale, height, pitch=0.0):
+    """``camera`` with its centre ``C -> scale C + height e_z`` and turned by ``pitch`` (rad) about its own X axis."""
+    c, s = np.cos(pitch), np.sin(pitch)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]) @ camera.R
     C = scale * camera.center + np.array([0.0, 0.0, height])
-    return camera.with_pose(camera.R, -camera.R @ C)
+    return camera.with_pose(R, -R @ C)
 
 
 def fit_plate(camera: Camera, image: np.ndarray, *, radius_mm: float, top_mm: float = 0.0, wall_mm: float = 10.0,
-              iterations: int = 6) -> PlateFit | None:
+              iterations: int = 6, pitch: bool = False, half_px: float = HALF_PX, local_px: float | None = None) -> PlateFit | None:
     """Fit the camera's distance to the table axis and its height to the plate's rim in ``image``.
 
     Parameters
@@ -125,6 +135,10 @@ def fit_plate(camera: Camera, image: np.ndarray, *, radius_mm: float, top_mm: fl
         The plate's radius and the height of its top face, world frame, mm.
     wall_mm : float
         How far below the top the side wall's lower edge is assumed at least (only limits the profiles).
+    pitch : bool
+        Also turn the camera about its own X axis (its tilt toward the table), ``PlateFit.pitch_rad``.
+    half_px, local_px : float
+        The edge search's half-width across the rim, and the step's extent about its peak (coarse search).
 
     Returns
     -------
@@ -132,20 +146,25 @@ def fit_plate(camera: Camera, image: np.ndarray, *, radius_mm: float, top_mm: fl
         None when too few rim points show a clean edge.
     """
     grey = _grey(image)
-    s, h = 1.0, 0.0
-    sd = (np.nan, np.nan)
+    q = np.zeros(3)  # scale - 1, height, pitch
+    n_q = 3 if pitch else 2
+    sd = np.full(3, np.nan)
+    steps = (1e-4, 0.05, 1e-5)
+    rms, m = np.nan, np.zeros(0, bool)
     for it in range(iterations):
-        cam = _camera_at(camera, s, h)
+        cam = _camera_at(camera, 1 + q[0], q[1], q[2])
         p, nrm, gap = _rim_geometry(cam, radius_mm, top_mm, wall_mm)
-        o = _edges(grey, p, nrm, gap)
+        o = _edges(grey, p, nrm, gap, half_px, local_px)
         m = np.isfinite(o)
         if m.sum() < MIN_POINTS:
             return None
-        # Jacobian of the projected rim along the normals with respect to (s, h)
-        J = np.empty((len(p), 2))
-        for k, (ds, dh) in enumerate(((1e-4, 0.0), (0.0, 0.05))):
-            pp, _, _ = _rim_geometry(_camera_at(camera, s + ds, h + dh), radius_mm, top_mm, wall_mm)
-            J[:, k] = np.einsum("ij,ij->i", pp - p, nrm) / (ds + dh)
+        # Jacobian of the projected rim along the normals
+        J = np.empty((len(p), n_q))
+        for k in range(n_q):
+            qk = q.copy()
+            qk[k] += steps[k]
+            pp, _, _ = _rim_geometry(_camera_at(camera, 1 + qk[0], qk[1], qk[2]), radius_mm, top_mm, wall_mm)
+            J[:, k] = np.einsum("ij,ij->i", pp - p, nrm) / steps[k]
         r = o[m]
         Jm = J[m]
         med = np.median(r)
@@ -153,15 +172,14 @@ def fit_plate(camera: Camera, image: np.ndarray, *, radius_mm: float, top_mm: fl
         wts = 1.0 / np.maximum(1.0, np.abs(r - med) / (3 * mad))  # Huber-like
         A = Jm * wts[:, None]
         step, *_ = np.linalg.lstsq(A, r * wts, rcond=None)
-        s, h = s + step[0], h + step[1]
+        q[:n_q] += step
         res = r - Jm @ step
         rms = float(np.sqrt(np.mean((res * wts) ** 2)))
-        cov = np.linalg.inv(A.T @ A) * rms**2
-        sd = tuple(np.sqrt(np.diag(cov)))
+        sd[:n_q] = np.sqrt(np.diag(np.linalg.inv(A.T @ A) * rms**2))
         if abs(step[0]) < 1e-6 and abs(step[1]) < 1e-4:
             break
-    return PlateFit(scale=float(s), height_mm=float(h), rms_px=rms, n_points=int(m.sum()),
-                    sd_scale=float(sd[0]), sd_height_mm=float(sd[1]))
+    return PlateFit(scale=float(1 + q[0]), height_mm=float(q[1]), rms_px=rms, n_points=int(m.sum()),
+                    sd_scale=float(sd[0]), sd_height_mm=float(sd[1]), pitch_rad=float(q[2]))
 
 
 # ------------------------------------------------------------------ the rim in the pose fit
@@ -200,6 +218,21 @@ def measure_rim(camera, image, *, radius_mm, top_mm=0.0, wall_mm=10.0):
     return Rim(th[m], p[m] + o[m, None] * nrm[m], nrm[m], float(radius_mm), float(top_mm))
 
 
+def _x_for_camera(model, x, cam):
+    """``x`` with the shared pose set so that view 0's camera is ``cam`` (the views' angles kept)."""
+    from scipy.spatial.transform import Rotation
+
+    from ._model import _rotvecs, _rz_stack
+
+    _, _, d, _ = model.split(x)
+    Rc = cam.R @ _rz_stack([model.angles[0] + d[0]])[0].T
+    w = Rotation.from_matrix(Rc @ model.base.R.T).as_rotvec()
+    x = x.copy()
+    x[:3] = w
+    x[3:6] = cam.t - _rotvecs(w[None])[0] @ model.base.t
+    return x
+
+
 def fit_with_rim(problem, model, x, template, image, *, radius_mm, top_mm=0.0, rounds=3):
     """Refit the tangents' problem with the plate's rim (seen by view 0's camera in ``image``) added.
 
@@ -215,14 +248,15 @@ def fit_with_rim(problem, model, x, template, image, *, radius_mm, top_mm=0.0, r
         R, t = model.poses(xx)
         return template.with_pose(R[0], t[0])
 
-    # come close first: the unseen scale and height alone (the edges are looked for within +-3 px)
-    f = fit_plate(cam_of(x), image, radius_mm=radius_mm, top_mm=top_mm)
-    if f is None:
-        return None
-    x = x.copy()
-    cam = _camera_at(cam_of(x), f.scale, f.height_mm)
-    R0, t0 = model.poses(x)
-    x[3:6] += cam.t - t0[0]  # the same rotation, the centre moved: tau takes the difference (camera frame)
+    # come close first, on the rim alone: the unseen scale and height and the camera's tilt (which the
+    # silhouettes of a near-symmetric specimen pin least), a coarse search (+-8 px) then the fine one
+    cam = cam_of(x)
+    for half, local in ((8.0, 1.5), (HALF_PX, None)):
+        f = fit_plate(cam, image, radius_mm=radius_mm, top_mm=top_mm, pitch=True, half_px=half, local_px=local)
+        if f is None:
+            return None
+        cam = _camera_at(cam, f.scale, f.height_mm, f.pitch_rad)
+    x = _x_for_camera(model, x, cam)
     rim = None
     for _ in range(rounds):
         rim = measure_rim(cam_of(x), image, radius_mm=radius_mm, top_mm=top_mm)

@@ -54,8 +54,11 @@ MAX_ANGLE_DEG = 15.0
 #: 'auto' refines also when the capture's angle audit measured a stop this far (degrees) from its
 #: commanded angle (relative to the first view): the audit's own error is below 0.05 deg (docs/capture.md).
 AUDIT_FLAG_DEG = 0.2
-#: The plate's rim is used only when its edges fit the refined camera within this RMS, px.
-RIM_MAX_PX = 1.0
+#: The plate's rim is used only when its edges fit the refined camera within this RMS, px (measured 0.11 px at
+#: 320 x 240 and 640 x 480; an edge search that caught the plate's rings instead: 0.68 px, 141 points) ...
+RIM_MAX_PX = 0.35
+#: ... on at least this many of its 720 points (measured 520-602).
+RIM_MIN_POINTS = 240
 #: ... and when the silhouettes' tangents agree about as well with it: their median view RMS at most this factor
 #: (+0.02 px) of the fit without the rim (bump_aaa7 640 x 480: 0.070 -> 0.0xx px).
 RIM_TANGENT_GAIN = 1.2
@@ -303,8 +306,9 @@ def _with_plate(pb, model, x, cam0, background, plate):
         entry["why"] = "the plate's rim was not found in the empty scene"
         return x, entry
     x2, rms, npts = got
-    if not rms < RIM_MAX_PX:
-        entry.update(why=f"the plate's rim fits badly (RMS {rms:.2f} px > {RIM_MAX_PX} px)", rim_rms_px=_f(rms))
+    if not (rms < RIM_MAX_PX and npts >= RIM_MIN_POINTS):
+        entry.update(why=f"the plate's rim fits badly (RMS {rms:.2f} px, limit {RIM_MAX_PX}; {npts} points, "
+                         f"at least {RIM_MIN_POINTS})", rim_rms_px=_f(rms), rim_points=int(npts))
         return x, entry
     t_before, t_after = float(np.nanmedian(pb.view_rms(x))), float(np.nanmedian(pb.view_rms(x2)))
     entry.update(tangent_median_px=[_f(t_before), _f(t_after)])
