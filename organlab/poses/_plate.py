@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
+from ._model import _rotvecs, _rz_stack, robust_lm
 
 #: Points along the rim.
 N_RIM = 720
@@ -222,7 +223,6 @@ def _x_for_camera(model, x, cam):
     """``x`` with the shared pose set so that view 0's camera is ``cam`` (the views' angles kept)."""
     from scipy.spatial.transform import Rotation
 
-    from ._model import _rotvecs, _rz_stack
 
     _, _, d, _ = model.split(x)
     Rc = cam.R @ _rz_stack([model.angles[0] + d[0]])[0].T
@@ -240,8 +240,6 @@ def fit_with_rim(problem, model, x, template, image, *, radius_mm, top_mm=0.0, r
     re-measured at the camera of each round.  Returns ``(x, rim_rms_px, n_points)`` or ``None`` when the
     rim is not found.
     """
-    from ._model import robust_lm
-
     ns = model.n_shared
 
     def cam_of(xx):

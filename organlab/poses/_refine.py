@@ -189,7 +189,11 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
         the tangents read are then re-estimated colour by colour on the
         silhouettes' edges (:func:`organlab.poses._outline.edge_coverage`), for
         views found by background subtraction; without them (or for keyed and
-        given silhouettes) the silhouettes' own coverage is read.
+        given silhouettes) the silhouettes' own coverage is read.  ``background`` also
+        shows the turntable plate: when the refinement moved the shared camera and
+        ``session.raw['turntable_plate']`` gives the plate's diameter, its rim measures the
+        camera's distance to the table axis and its height (:mod:`organlab.poses._plate`;
+        ``PoseRefinement.plate`` says what it did).
 
     Returns
     -------
