@@ -60,7 +60,7 @@ RIM_MAX_PX = 0.35
 #: ... on at least this many of its 720 points (measured 520-602).
 RIM_MIN_POINTS = 240
 #: ... and when the silhouettes' tangents agree about as well with it: their median view RMS at most this factor
-#: (+0.02 px) of the fit without the rim (bump_aaa7 640 x 480: 0.070 -> 0.0xx px).
+#: (+0.02 px) of the fit without the rim (measured 0.0684 -> 0.0686 px on bump_aaa7, 0.0861 -> 0.0872 on bumpb_aaa11).
 RIM_TANGENT_GAIN = 1.2
 
 
