@@ -107,6 +107,7 @@ def test_bumped_camera_is_corrected(tmp_path_factory):
 
     rep = reconstruct(s, voxel_size=2.0, finish=False).report
     assert rep["poses"]["accepted"] and rep["poses"]["mode"] == "auto" and rep["poses"]["seconds"] > 0
+    assert rep["poses"]["plate"]["used"] and rep["poses"]["plate"]["rim_points"] > 400
     assert abs(rep["mesh_volume_mm3"] / v_ref - 1) < 1e-6
     with pytest.raises(ValueError, match="refine_poses must be"):
         reconstruct(s, voxel_size=2.0, refine_poses="always")
