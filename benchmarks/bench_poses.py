@@ -9,6 +9,7 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
   linearly to +3 degrees over the turn plus 0.3 degrees of jitter per stop;
 * ``driftb_dented``: the same with another render (seed) and another drift;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
+* ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
 * ``drift_dented+audit`` / ``drift_aaa7+audit``: the drifting tables with the capture's angle
   audit (emulated: each stop's true angle plus the audit's error, sd 0.03 degrees; docs/capture.md
@@ -51,6 +52,9 @@ def scenes(n=36, size=(640, 480)):
         "ok_aaa7": dict(base, seed=1, specimen="aaa-7"),
         "drift_aaa7": dict(base, seed=2, specimen="aaa-7", true_angles_deg=drift_angles(n, 5)),
         "bump_aaa7": dict(base, seed=3, specimen="aaa-7", camera_bump={"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)}),
+        # another bump (other direction, another render and AAA), for the plate's rim chosen on the one above
+        "bumpb_aaa11": dict(base, seed=13, specimen="aaa-11",
+                            camera_bump={"rotation_deg": (-0.4, -0.5, 0.3), "translation_mm": (-0.8, 1.5, -0.9)}),
         "slip_aaa7": dict(base, seed=4, specimen="aaa-7", slip={"view": n // 2, "translation_mm": (1.2, -0.9), "rotation_deg": 0.0}),
         "drift_dented": dict(base, seed=6, specimen="dented", true_angles_deg=drift_angles(n, 8)),
         # another render and another drift, for the defaults chosen on the one above
@@ -67,6 +71,19 @@ def with_audit(s, truth, sd=0.03, seed=0):
     s.raw["capture"] = {"audit": [{"commanded_deg": float(a), "measured_deg": float(a + e), "error_deg": float(e)}
                                   for a, e in zip(cmd, err)]}
     return s
+
+
+def _rot_err(Ra, Rb):
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1))))
+
+
+def _elev_t(R):
+    """The optical axis's angle below the table plane, degrees."""
+    return float(np.degrees(np.arcsin(-R[2, 2])))
+
+
+def _elev(cam):
+    return _elev_t(cam.R)
 
 
 def _cyl(c):
@@ -127,6 +144,16 @@ def main(argv=None):
                   f"(modulo a common turn {np.median(em):.3f}/{em.max():.3f}); camera centre error {np.linalg.norm(cc - ct):.2f} -> {np.linalg.norm(cr - ct):.2f} mm "
                   f"(modulo a turn about the axis {np.linalg.norm(_cyl(cc) - _cyl(ct)):.2f} -> "
                   f"{np.linalg.norm(_cyl(cr) - _cyl(ct)):.2f} mm); slip {r.slip}; candidates {r.gate.get('candidates')}")
+            # against the cameras that rendered the views (for a bumped camera the table angles are right but
+            # every view turned with the camera): each view's rotation error, and the camera's distance to the
+            # axis, height and elevation (what the plate's rim measures)
+            rot0 = [_rot_err(c.R, np.array(v["R"])) for c, v in zip(cal.cameras(s), truth["views"])]
+            rot1 = [_rot_err(c.R, np.array(v["R"])) for c, v in zip(r.cameras, truth["views"])]
+            rho_t = np.hypot(*ct[:2])
+            print(f"  view rotation error median/max {np.median(rot0):.3f}/{np.max(rot0):.3f} -> {np.median(rot1):.3f}/{np.max(rot1):.3f} deg; "
+                  f"distance to the axis {np.hypot(*cc[:2]) - rho_t:+.2f} -> {np.hypot(*cr[:2]) - rho_t:+.2f} mm "
+                  f"(scale {np.hypot(*cr[:2]) / rho_t:.5f}), height {cc[2] - ct[2]:+.2f} -> {cr[2] - ct[2]:+.2f} mm, "
+                  f"elevation {_elev(cal.cameras(s)[0]) - _elev_t(Rt):+.3f} -> {_elev(r.cameras[0]) - _elev_t(Rt):+.3f} deg; plate {r.plate}")
         if a.voxel_size:
             from organlab.pipeline import reconstruct
 

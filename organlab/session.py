@@ -295,6 +295,7 @@ def load_session(path: str | Path, *, check_images: bool = True, allow_outside_p
     calibration = _calibration_json(root / "calibration.json")
     views, notes = _views(raw, root, sj, allow_outside_paths)
     backdrop = _parse_backdrop(raw.get("backdrop"), sj, background)
+    _check_turntable_plate(raw.get("turntable_plate"), sj)
     _check_needs(sj, views, camera, intrinsic, turntable, background, pattern, calibration, backdrop)
     session = Session(
         root=root,
@@ -502,6 +503,21 @@ def _reference(raw, sj):
     if "volume_mm3" in reference and not (isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0):
         _fail(sj, "reference.volume_mm3", f"must be a finite positive number of mm3, got {printable(repr(v)[:40])}")
     return dict(reference)
+
+
+def _check_turntable_plate(value, sj):
+    """The optional ``turntable_plate`` key: ``{"diameter_mm": > 0, "top_z_mm": number (default 0)}``."""
+    if value is None:
+        return
+    if not isinstance(value, dict):
+        _fail(sj, "turntable_plate", "must be an object, e.g. {'diameter_mm': 250.0} (measured with a ruler)")
+    for key, positive in (("diameter_mm", True), ("top_z_mm", False)):
+        v = value.get(key)
+        if v is None and not positive:
+            continue
+        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and (v > 0 or not positive)):
+            what = "a finite positive number of mm" if positive else "a finite number of mm"
+            _fail(sj, f"turntable_plate.{key}", f"must be {what}, got {printable(repr(v)[:40])}")
 
 
 def _parse_backdrop(value, sj, background):

@@ -13,6 +13,10 @@ specimen, which hides its angles, is left alone and the report says so.
 When the capture's angle audit measured the stops (``session.json``
 ``capture.audit``, :func:`organlab.capture.audited_angles`), the views'
 angles are held to the measured ones instead of the commanded ones.
+When the shared camera moved and ``session.json`` gives the turntable plate's
+diameter (``turntable_plate``), the camera's distance to the table axis and its
+height, which no silhouette shows, are measured on the plate's rim in the empty
+scene and fitted with the tangents.
 
 ``refine_poses(session, calibration, silhouettes, mode=...)`` is the stage's
 one function; it returns a :class:`PoseRefinement` (``.cameras`` to carve
@@ -20,7 +24,8 @@ with, ``.to_dict()`` for ``report.json``).
 
 Private modules: ``_outline`` (the edge pixels' coverage re-estimated from the
 images, for sub-pixel outlines), ``_tangents`` (outline rays, extremal epipolar planes),
-``_model`` (the pose model, its residuals and the robust fit), ``_refine``
+``_model`` (the pose model, its residuals and the robust fit), ``_plate`` (the
+plate's rim: the camera's distance to the axis and height), ``_refine``
 (detection, slip, gate).  Silhouette coherence along outline rays was tried and
 dropped (docs/trust.md says why).
 """

@@ -15,6 +15,7 @@ from ..session import Session
 from . import _model
 from ._model import Model, Problem
 from ._outline import edge_coverage
+from ._plate import fit_with_rim
 from ._tangents import outline_rays, pad_rays
 
 MODES = ("auto", "on", "off")
@@ -53,6 +54,14 @@ MAX_ANGLE_DEG = 15.0
 #: 'auto' refines also when the capture's angle audit measured a stop this far (degrees) from its
 #: commanded angle (relative to the first view): the audit's own error is below 0.05 deg (docs/capture.md).
 AUDIT_FLAG_DEG = 0.2
+#: The plate's rim is used only when its edges fit the refined camera within this RMS, px (measured 0.11 px at
+#: 320 x 240 and 640 x 480; an edge search that caught the plate's rings instead: 0.68 px, 141 points) ...
+RIM_MAX_PX = 0.35
+#: ... on at least this many of its 720 points (measured 520-602).
+RIM_MIN_POINTS = 240
+#: ... and when the silhouettes' tangents agree about as well with it: their median view RMS at most this factor
+#: (+0.02 px) of the fit without the rim (measured 0.0684 -> 0.0686 px on bump_aaa7, 0.0861 -> 0.0872 on bumpb_aaa11).
+RIM_TANGENT_GAIN = 1.2
 
 
 @dataclass
@@ -109,6 +118,8 @@ class PoseRefinement:
     prior: str = "the commanded angles"
     audit_applied: bool = False
     flag_px: float = FLAG_PX
+    #: The plate's rim in the fit (the camera's unseen distance to the axis and height): ``{"used", ...}``, or None.
+    plate: dict | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready (the ``poses`` entry of ``report.json``)."""
@@ -136,6 +147,8 @@ class PoseRefinement:
             d["slip"] = {**self.slip, "view": self._name(self.slip["view"])}
         if self.gate:
             d["gate"] = self.gate
+        if self.plate is not None:
+            d["plate"] = self.plate
         return d
 
     def _name(self, i):
@@ -176,7 +189,11 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
         the tangents read are then re-estimated colour by colour on the
         silhouettes' edges (:func:`organlab.poses._outline.edge_coverage`), for
         views found by background subtraction; without them (or for keyed and
-        given silhouettes) the silhouettes' own coverage is read.
+        given silhouettes) the silhouettes' own coverage is read.  ``background`` also
+        shows the turntable plate: when the refinement moved the shared camera and
+        ``session.raw['turntable_plate']`` gives the plate's diameter, its rim measures the
+        camera's distance to the table axis and its height (:mod:`organlab.poses._plate`;
+        ``PoseRefinement.plate`` says what it did).
 
     Returns
     -------
@@ -213,7 +230,9 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
         covs, sharp = _outlines(list(silhouettes), covs, images, np.asarray(background))
     else:
         sharp = False
-    done = _refine(session, calibration, covs, cameras, mode, names, FLAG_SUBPIXEL_PX if sharp else FLAG_PX)
+    plate = turntable_plate(session)
+    done = _refine(session, calibration, covs, cameras, mode, names, FLAG_SUBPIXEL_PX if sharp else FLAG_PX,
+                   background=None if background is None else np.asarray(background), plate=plate)
     done.seconds = time.perf_counter() - t_start
     return done
 
@@ -269,7 +288,47 @@ def _build_model(session, calibration, cameras):
     return None, "views mix given poses and table angles: not refined"
 
 
-def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX):
+def turntable_plate(session):
+    """``(radius_mm, top_z_mm)`` of the turntable plate from ``session.json`` ``turntable_plate``, or None."""
+    raw = getattr(session, "raw", None) or {}
+    p = raw.get("turntable_plate")
+    if not isinstance(p, dict) or p.get("diameter_mm") is None:
+        return None
+    return 0.5 * float(p["diameter_mm"]), float(p.get("top_z_mm", 0.0))
+
+
+def _with_plate(pb, model, x, cam0, background, plate):
+    """The shared camera refitted with the plate's rim (:func:`._plate.fit_with_rim`): ``(x, report entry)``."""
+    entry = {"used": False, "diameter_mm": _f(2 * plate[0]), "top_z_mm": _f(plate[1])}
+    if background is None:
+        entry["why"] = "no frames of the empty scene"
+        return x, entry
+    R0, t0 = model.poses(x)
+    c_before = cam0.with_pose(R0[0], t0[0]).center
+    got = fit_with_rim(pb, model, x, cam0, background, radius_mm=plate[0], top_mm=plate[1])
+    if got is None:
+        entry["why"] = "the plate's rim was not found in the empty scene"
+        return x, entry
+    x2, rms, npts = got
+    if not (rms < RIM_MAX_PX and npts >= RIM_MIN_POINTS):
+        entry.update(why=f"the plate's rim fits badly (RMS {rms:.2f} px, limit {RIM_MAX_PX}; {npts} points, "
+                         f"at least {RIM_MIN_POINTS})", rim_rms_px=_f(rms), rim_points=int(npts))
+        return x, entry
+    t_before, t_after = float(np.nanmedian(pb.view_rms(x))), float(np.nanmedian(pb.view_rms(x2)))
+    entry.update(tangent_median_px=[_f(t_before), _f(t_after)])
+    if t_after > RIM_TANGENT_GAIN * t_before + 0.02:  # the rim pulls against the silhouettes
+        entry["why"] = (f"the plate's rim disagrees with the silhouettes (tangent median {t_before:.3f} -> {t_after:.3f} px): "
+                        f"a plate off the axis, tilted, or a wrong turntable_plate")
+        return x, entry
+    R1, t1 = model.poses(x2)
+    c_after = cam0.with_pose(R1[0], t1[0]).center
+    rho0, rho1 = np.hypot(*c_before[:2]), np.hypot(*c_after[:2])
+    entry.update(used=True, rim_rms_px=_f(rms), rim_points=int(npts), distance_change_mm=_f(rho1 - rho0),
+                 height_change_mm=_f(c_after[2] - c_before[2]))
+    return x2, entry
+
+
+def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *, background=None, plate=None):
     model, why = _build_model(session, calibration, cameras)
     model_in = model
     base = dict(cameras=cameras, accepted=False, mode=mode, names=names, flag_px=flag_px)
@@ -328,6 +387,10 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX):
         if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
             pick = c
     model, pb, x, slip, gate = pick
+    plate_entry = None
+    if gate["accepted"] and model.kind == "turntable" and model.shared and plate is not None:
+        # the camera moved: its distance to the axis and its height, which no silhouette shows, from the plate
+        x, plate_entry = _with_plate(pb, model, x, cam0, background, plate)
     gate["refined"] = _kind(model)
     gate["candidates"] = {_kind(c[0]): _f(c[4]["after_px"]) for c in cands}
     after = pb.view_rms(x)
@@ -337,7 +400,7 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX):
     rot = float(np.rad2deg(np.linalg.norm(w)))
     shift = refined[0].center - (cameras[0].center if model.kind == "posed" else model.base.center)
     info = dict(after_px=after, angle_corrections_deg=d, camera_rotation_deg=rot, camera_center_shift_mm=shift,
-                slip=slip, gate=gate)
+                slip=slip, gate=gate, plate=plate_entry)
     base.update(info)
     big = _too_large(rot, shift, d, slip)
     kept = "poses left as calibrated"

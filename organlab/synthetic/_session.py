@@ -181,6 +181,8 @@ def make_session(
         "views": views,
         "roi": {"min": [float(v) for v in roi["min"]], "max": [float(v) for v in roi["max"]]},
         "reference": {"volume_mm3": spec.volume},
+        # the plate a user measures with a ruler (its top is where the zero-thickness board lies)
+        "turntable_plate": {"diameter_mm": 2.0 * _render.PLATE_RADIUS, "top_z_mm": 0.0},
         "synthetic": {"generator": "organlab.synthetic", "seed": int(seed), "truth": "truth.json"},
     }
     if include_camera:
