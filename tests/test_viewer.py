@@ -307,8 +307,12 @@ def test_cli_view_bad_input(tmp_path, capsys, sample, monkeypatch):
 def test_thesis_hull_and_coloring_reruns(app):
     from organlab.viewer._scene import surface_voxels
 
+    from organlab.engine import HULL_METHODS, METHODS
+
     base = app.result
     assert base.settings.hull == "subvoxel" and base.settings.method == "hull"
+    # the dropdowns offer the engine's methods (its one list, not a copy kept by the GUI)
+    assert tuple(app.controls.method.options) == METHODS and tuple(app.controls.hull.options) == HULL_METHODS
     g = app.rerun(hull="thesis")
     assert app.wait(g, timeout=120) and not app.errors
     res = app.result
