@@ -59,12 +59,33 @@ def app(sample):
 
 
 def test_startup_says_the_url_first_then_its_steps(app):
-    lines = [line for line, _ in app.said]
+    # a cold numba cache (no `make warm`) adds one "compiling" line: test_compiling_is_said checks it
+    lines = [line for line, _ in app.said if not line.startswith("  compiling:")]
     # the address comes first, with the page already served, before the views, cameras and silhouettes are read
     assert lines[0] == f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)" and app.said[0][1] == 200
     assert lines[1:] == ["  starting: reading 12 views", "  starting: cameras (given in session.json)",
                          "  starting: background and silhouette model"], lines
     assert app.status.startswith("start-up: done in")
+
+
+def test_compiling_is_said(app):
+    """A numba kernel compiling while the viewer runs (its cache missed) is said once and shown in the page."""
+    from numba import njit
+
+    def organlab_test_kernel(x):
+        return x + 1
+
+    n0, status = app.compiling.count, app.status
+    try:
+        assert njit(organlab_test_kernel)(1) == 2  # a new function: compiled, never in the cache
+        assert app.compiling.count == n0 + 1 and app.compiling.seconds > 0
+        assert "compiling numba kernel organlab_test_kernel" in app.controls.status.content
+        assert njit(organlab_test_kernel)(1) == 2 and app.compiling.count == n0 + 2  # a new dispatcher: again
+        said = [line for line, _ in app.said if line.startswith("  compiling:")]
+        assert len(said) == 1 and "make warm" in said[0], said  # said once, however many kernels compile
+    finally:
+        app.status = status
+        app.controls.show_status(status)
 
 
 # ------------------------------------------------------------------ LiveView
