@@ -79,10 +79,11 @@ def test_compiling_is_said(app):
     try:
         assert njit(organlab_test_kernel)(1) == 2  # a new function: compiled, never in the cache
         assert app.compiling.count == n0 + 1 and app.compiling.seconds > 0
-        assert "compiling numba kernel organlab_test_kernel" in app.controls.status.content
+        assert app.controls.status.content == "*start-up: compiling numba kernels (the first run after installing; once)*"
         assert njit(organlab_test_kernel)(1) == 2 and app.compiling.count == n0 + 2  # a new dispatcher: again
         said = [line for line, _ in app.said if line.startswith("  compiling:")]
-        assert len(said) == 1 and "make warm" in said[0], said  # said once, however many kernels compile
+        # said once, however many kernels compile (the first one named)
+        assert len(said) == 1 and "make warm" in said[0] and (n0 > 0 or "organlab_test_kernel" in said[0]), said
     finally:
         app.status = status
         app.controls.show_status(status)

@@ -259,11 +259,11 @@ class SessionViewer:
         return self.worker.wait(generation, timeout)
 
     def _compiling(self, name):
-        """A numba kernel compiles (CompileWatch, in the compiling thread): said once, shown each time."""
-        why = "organlab's numba kernels compile on their first run after installing, once; `make warm` does it"
+        """A numba kernel compiles (CompileWatch, in the compiling thread): said once, shown in the status."""
         if self.compiling.count == 1:
-            self._say(f"  compiling: {why}")
-        self.status = f"{self._label}: compiling numba kernel {name} ({why})"
+            self._say(f"  compiling: organlab's numba kernels compile on their first run after installing, once "
+                      f"(`make warm` does it at install); first: {name}")
+        self.status = f"{self._label}: compiling numba kernels (the first run after installing; once)"
         if getattr(self, "controls", None) is not None:
             self.controls.show_status(self.status)
         elif self._notice is not None:
