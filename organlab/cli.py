@@ -358,6 +358,7 @@ def _view(a):
     port = _check_listen(a.host, a.port)
     _warn_host(a.host)
     # the session and --result are checked before the server starts; then the URL, then each start-up step
+    print("organlab view: loading the viewer (its address follows in a few seconds)", flush=True)  # imports: 3-15 s
     app = _start_server(lambda: SessionViewer(a.session, result=a.result, voxel_size=a.voxel_size, host=a.host,
                                               port=port, say=lambda line: print(line, flush=True)), "organlab view")
     try:

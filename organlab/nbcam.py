@@ -16,12 +16,20 @@ Packed camera, ``(N_CP,)`` float64::
 
 Note: numba's on-disk cache does not notice edits of this module in the
 kernels that inline it; clear ``__pycache__`` after changing it.
+
+:class:`CompileWatch` tells a face when numba compiles (a kernel not in that
+cache yet: the first run after installing, unless ``make warm`` ran), so it can
+say why it waits.
 """
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 from numba import njit
+from numba.core import event as _numba_event
 
 N_CP = 23
 
@@ -65,3 +73,71 @@ def to_pixel(cp, xn, yn):
     xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
     yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
     return cp[12] * xd + cp[13] * yd + cp[14], cp[15] * yd + cp[16]
+
+
+class CompileWatch(_numba_event.Listener):
+    """Watch numba compile kernels (its cache missed) while registered, in any thread.
+
+    Parameters
+    ----------
+    on_compile : callable(name), optional
+        Called when a kernel starts compiling (not for the kernels it compiles
+        inside it), with the kernel's name, in the compiling thread.
+
+    Attributes
+    ----------
+    count : int
+        Kernels compiled (outermost compilations).
+    seconds : float
+        Wall-clock time spent compiling them, s.
+
+    Examples
+    --------
+    >>> from numba import njit
+    >>> with CompileWatch() as w:
+    ...     _ = njit(lambda x: x + 1)(1)
+    >>> w.count, w.seconds > 0
+    (1, True)
+    """
+
+    def __init__(self, on_compile=None):
+        self.on_compile = on_compile
+        self.count = 0
+        self.seconds = 0.0
+        self._depth = threading.local()
+        self._lock = threading.Lock()
+
+    def on_start(self, event):
+        depth = getattr(self._depth, "n", 0)
+        self._depth.n = depth + 1
+        if depth == 0:
+            self._depth.t0 = time.perf_counter()
+            with self._lock:
+                self.count += 1
+            if self.on_compile is not None:
+                d = (event.data or {}).get("dispatcher")
+                self.on_compile(getattr(getattr(d, "py_func", None), "__name__", "kernel"))
+
+    def on_end(self, event):
+        self._depth.n = getattr(self._depth, "n", 1) - 1
+        if self._depth.n == 0:
+            with self._lock:
+                self.seconds += time.perf_counter() - self._depth.t0
+
+    def start(self) -> CompileWatch:
+        """Register (numba's ``numba:compile`` events reach :meth:`on_start` / :meth:`on_end`)."""
+        _numba_event.register("numba:compile", self)
+        return self
+
+    def stop(self) -> None:
+        """Unregister (no error when not registered)."""
+        try:
+            _numba_event.unregister("numba:compile", self)
+        except ValueError:
+            pass
+
+    def __enter__(self) -> CompileWatch:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

@@ -59,12 +59,34 @@ def app(sample):
 
 
 def test_startup_says_the_url_first_then_its_steps(app):
-    lines = [line for line, _ in app.said]
+    # a cold numba cache (no `make warm`) adds one "compiling" line: test_compiling_is_said checks it
+    lines = [line for line, _ in app.said if not line.startswith("  compiling:")]
     # the address comes first, with the page already served, before the views, cameras and silhouettes are read
     assert lines[0] == f"organlab view: {app.session.name} at {app.url}  (Ctrl-C stops)" and app.said[0][1] == 200
     assert lines[1:] == ["  starting: reading 12 views", "  starting: cameras (given in session.json)",
                          "  starting: background and silhouette model"], lines
     assert app.status.startswith("start-up: done in")
+
+
+def test_compiling_is_said(app):
+    """A numba kernel compiling while the viewer runs (its cache missed) is said once and shown in the page."""
+    from numba import njit
+
+    def organlab_test_kernel(x):
+        return x + 1
+
+    n0, status = app.compiling.count, app.status
+    try:
+        assert njit(organlab_test_kernel)(1) == 2  # a new function: compiled, never in the cache
+        assert app.compiling.count == n0 + 1 and app.compiling.seconds > 0
+        assert app.controls.status.content == "*start-up: compiling numba kernels (the first run after installing; once)*"
+        assert njit(organlab_test_kernel)(1) == 2 and app.compiling.count == n0 + 2  # a new dispatcher: again
+        said = [line for line, _ in app.said if line.startswith("  compiling:")]
+        # said once, however many kernels compile (the first one named)
+        assert len(said) == 1 and "make warm" in said[0] and (n0 > 0 or "organlab_test_kernel" in said[0]), said
+    finally:
+        app.status = status
+        app.controls.show_status(status)
 
 
 # ------------------------------------------------------------------ LiveView
@@ -307,8 +329,12 @@ def test_cli_view_bad_input(tmp_path, capsys, sample, monkeypatch):
 def test_thesis_hull_and_coloring_reruns(app):
     from organlab.viewer._scene import surface_voxels
 
+    from organlab.engine import HULL_METHODS, METHODS
+
     base = app.result
     assert base.settings.hull == "subvoxel" and base.settings.method == "hull"
+    # the dropdowns offer the engine's methods (its one list, not a copy kept by the GUI)
+    assert tuple(app.controls.method.options) == METHODS and tuple(app.controls.hull.options) == HULL_METHODS
     g = app.rerun(hull="thesis")
     assert app.wait(g, timeout=120) and not app.errors
     res = app.result

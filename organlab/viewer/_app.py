@@ -23,6 +23,7 @@ from ..calibration import needs_calibration
 from ..engine import AgreementFigures, Engine, Reconstruction, Settings
 from .. import validate
 from ..errors import OrganlabError, SessionError
+from ..nbcam import CompileWatch
 from ..session import Session, load_session
 from ._frustums import PoseFrustums
 from ._gui import Controls
@@ -185,6 +186,7 @@ class SessionViewer:
                  views: Any = None, host: str = "127.0.0.1", port: int = 8080, stream: bool = True,
                  verbose: bool = False, say: Any = None, token: str | None = None):
         say = say or (lambda _line: None)
+        self._say = say
         self.session = session if isinstance(session, Session) else load_session(session)
         s = self.session
         if not s.views:
@@ -202,6 +204,11 @@ class SessionViewer:
         self.live = LiveView(roi=roi, host=host, port=port, verbose=verbose, label=f"organlab: {s.name}", token=token)
         say(f"organlab view: {s.name} at {self.url}  (Ctrl-C stops)")
         notice = self.live.server.gui.add_markdown("*starting*")
+        self._notice = notice
+        self._label = "starting"
+        # numba compiling a kernel (not in its on-disk cache: the first run after installing, unless
+        # `make warm` ran) is said, in the terminal and the page: it took 20-50 s of silence before
+        self.compiling = CompileWatch(self._compiling).start()
 
         def step(text):
             self.status = f"starting: {text}"
@@ -225,6 +232,7 @@ class SessionViewer:
         self.auto_threshold = float(np.median(autos)) if autos else None
         self.is_aaa = self.engine.is_aaa  # AAA measures after each re-run, as organlab reconstruct
         notice.remove()
+        self._notice = None
         # pymeshlab (finish_surface, in the worker thread) must be imported first in this thread:
         # imported first in the worker, the process aborted at exit (glibc malloc_consolidate).  After the
         # silhouette model: numba's parallel kernels must choose their threads before pymeshlab's old libtbb loads
@@ -250,6 +258,17 @@ class SessionViewer:
         """Wait until a re-run (default: the newest) is shown."""
         return self.worker.wait(generation, timeout)
 
+    def _compiling(self, name):
+        """A numba kernel compiles (CompileWatch, in the compiling thread): said once, shown in the status."""
+        if self.compiling.count == 1:
+            self._say(f"  compiling: organlab's numba kernels compile on their first run after installing, once "
+                      f"(`make warm` does it at install); first: {name}")
+        self.status = f"{self._label}: compiling numba kernels (the first run after installing; once)"
+        if getattr(self, "controls", None) is not None:
+            self.controls.show_status(self.status)
+        elif self._notice is not None:
+            self._notice.content = f"*{self.status}*"
+
     def _error(self, exc, tb):
         self.errors.append(tb)
         self.status = f"error: {exc}"
@@ -260,6 +279,8 @@ class SessionViewer:
         # the first reconstruction is the start-up's; re-runs are numbered from the first change, counting the
         # runs shown (a request superseded by a newer one, as a dragged slider sends, takes no number)
         label = "start-up" if gen == 1 and kind == "stream" else f"run {self._runs + 1}"
+        self._label = label
+        compiled0 = self.compiling.seconds
         t0 = time.perf_counter()
         tm = {}
         last = [t0]
@@ -299,6 +320,7 @@ class SessionViewer:
                 tm["scene updated"] = time.perf_counter() - t0  # voxels and marching-cubes mesh queued
             elif name == "surface":
                 self._show_surface(result.mesh, result.aaa)
+                tm["surface shown"] = time.perf_counter() - t0  # the finished surface and AAA measures queued
                 self.status = f"{label}: agreement"
             self.controls.show_status(self.status)
 
@@ -310,7 +332,9 @@ class SessionViewer:
         self.result = res
         if label != "start-up":
             self._runs += 1
-        self.status = f"{label}: done in {res.seconds:.2f} s"
+        compiled = self.compiling.seconds - compiled0
+        self.status = f"{label}: done in {res.seconds:.2f} s" + (
+            f" ({compiled:.1f} s of it compiling numba kernels, once)" if compiled >= 0.05 else "")
         self.controls.show_result(res)
         self.pose_frustums.show(self.cameras, rec.cameras, (rec.report or {}).get("poses"))
 
@@ -385,6 +409,7 @@ class SessionViewer:
     def stop(self):
         """Stop the worker and the server (frees the port)."""
         self.worker.stop()
+        self.compiling.stop()
         self.live.stop()
 
     def __enter__(self):

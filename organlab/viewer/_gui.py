@@ -7,13 +7,11 @@ import threading
 
 import numpy as np
 
-from ..engine import color_threshold_range
+from ..engine import HULL_METHODS, METHODS, color_threshold_range
 from ..errors import OrganlabError
 from ..preflight import check_grid_memory
 from . import _scene
 
-METHODS = ("hull", "coloring", "space_carving", "photo")
-HULLS = ("subvoxel", "thesis")
 MODELS = ("mesh", "voxels", "mesh + voxels")
 #: Bounds of the controls, enforced on the server: viser does not enforce a slider's limits, and a
 #: crafted message set a 0.05 mm voxel or a 3 m roi (30-45 s at 2.8 GB while newer requests waited).
@@ -53,7 +51,7 @@ class Controls:
                 "Li's automatic threshold, per view, at least 5 x the background frames' noise")
             self.voxel = gui.add_slider("Voxel size (mm)", min=0.5, max=5.0, step=0.5, initial_value=st.voxel_size)
             self.method = gui.add_dropdown("Method", METHODS, initial_value=st.method)
-            self.hull = gui.add_dropdown("Hull", HULLS, initial_value=st.hull)
+            self.hull = gui.add_dropdown("Hull", HULL_METHODS, initial_value=st.hull)
             rng = color_threshold_range("coloring" if st.method == "hull" else st.method)
             self._color_method = "coloring" if st.method == "hull" else st.method
             self.color_threshold = gui.add_slider(
@@ -210,7 +208,7 @@ class Controls:
         @self.hull.on_update
         def _(_e):
             if not self._quiet:
-                self._settings_changed(hull=self._choice(self.hull, HULLS))
+                self._settings_changed(hull=self._choice(self.hull, HULL_METHODS))
 
         @self.color_threshold.on_update
         def _(_e):
