@@ -25,7 +25,16 @@ from ..masks import Silhouette
 from ..session import Session, load_session
 from ._joint import MIN_VIEWS, joint_masks
 from ._keying import KeyInfo, auto_key_threshold, clean_scaled, estimate_backdrop, key_distance
-from ._subtract import auto_threshold, background_model, background_noise, clean_mask, coverage, difference
+from ._subtract import (
+    RIM_DEPTH,
+    auto_threshold,
+    background_model,
+    background_noise,
+    clean_mask,
+    coverage,
+    difference,
+    grow_rim,
+)
 
 __all__ = ["SilhouetteModel", "silhouettes", "session_silhouettes"]
 
@@ -63,6 +72,10 @@ class SilhouetteModel:
         model; ``"frames"`` needs ``background_frames``, ``"border"`` takes
         the median colour of the views' border bands.  ``mode`` does not
         apply then.
+    rim_depth : int, px
+        Subtraction: each view's silhouette keeps the dim rim connected to
+        it, at most this many pixels out (:func:`organlab.silhouette.grow_rim`,
+        hysteresis down to 3 times the background noise); 0 turns it off.
 
     Attributes
     ----------
@@ -72,6 +85,8 @@ class SilhouetteModel:
     units : str
         The threshold's units: ``'grey levels'`` (subtraction) or
         ``'Delta E'`` (CIE76 colour difference, keying).
+    noise : float
+        Subtraction: :func:`background_noise` of the frames, grey levels (0 for keying).
     floor : float
         Lowest automatic threshold (subtraction: 5 times
         :func:`background_noise`; keying: 0, its rule has its own noise term).
@@ -85,7 +100,7 @@ class SilhouetteModel:
     def __init__(self, images: Sequence[np.ndarray], background_frames: Sequence[np.ndarray] | None = None, *,
                  mode: Literal["color", "grey"] = "color", background: Literal["median", "mean"] = "median",
                  masks: Sequence[np.ndarray | None] | None = None, names: Sequence[str] | None = None,
-                 backdrop: dict | None = None) -> None:
+                 backdrop: dict | None = None, rim_depth: int = RIM_DEPTH) -> None:
         images = list(images)
         n = len(images)
         masks = [None] * n if masks is None else list(masks)
@@ -104,6 +119,8 @@ class SilhouetteModel:
         self.units = "Delta E" if self.keyed else "grey levels"
         self.background = None
         self.floor = 0.0
+        self.noise = 0.0
+        self.rim_depth = int(rim_depth)
         self.differences = [None] * n
         self.gains = [1.0] * n
         self._shadow = [0.0] * n
@@ -112,7 +129,8 @@ class SilhouetteModel:
         if need:
             self.background = self._background(background_frames, background, [self.images[i] for i in need])
             if not self.keyed:
-                self.floor = 5.0 * background_noise(list(background_frames))
+                self.noise = background_noise(list(background_frames))
+                self.floor = 5.0 * self.noise
             diffs = _map_views(lambda i: self._difference(i), need)
             for i, d in zip(need, diffs):
                 self.differences[i] = d
@@ -287,6 +305,8 @@ class SilhouetteModel:
         if self.keyed:
             return self._keyed(i, t, clean)
         mask = clean_mask(self.differences[i] > t, **clean)
+        mask = grow_rim(mask, self.differences[i], self.images[i], self.background, noise=self.noise,
+                        depth=self.rim_depth, fill_holes=clean.get("fill_holes", True))
         if not mask.any():
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"

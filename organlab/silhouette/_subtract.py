@@ -7,6 +7,7 @@ scene.  The stage is a chain of small functions::
     diff = difference(image, bg)                  # grey or colour distance
     t = auto_threshold(diff)                      # Li's, or a value picked by the user
     mask = clean_mask(diff > t)                   # opening, closing, components, holes
+    mask = grow_rim(mask, diff, image, bg, noise=n)  # its dim rim (hysteresis down to 3 noise sigmas)
     cov = coverage(image, bg, mask)               # sub-pixel silhouette in [0, 1]
 
 :func:`silhouettes` runs it for every view of a session, using a
@@ -29,9 +30,19 @@ __all__ = [
     "difference",
     "auto_threshold",
     "clean_mask",
+    "grow_rim",
     "coverage",
     "silhouette",
 ]
+
+#: grow_rim: the low threshold in units of the background noise (a colour distance of 3 noise
+#: standard deviations: 6e-6 of the background's pixels, as chi with 3 degrees of freedom).
+RIM_LOW = 3.0
+#: grow_rim: a grown pixel shows at least this fraction of the largest difference of the silhouette's
+#: pixels next to it (a pixel covered by a fraction ``a`` of the specimen shows ``a`` times its contrast).
+RIM_FRACTION = 0.5
+#: grow_rim: the rim is grown at most this many pixels out from the silhouette.
+RIM_DEPTH = 10
 
 
 def _stack(frames):
@@ -275,6 +286,118 @@ def _fill_holes(out):
     return out | ~border[lab2]
 
 
+def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None, background: np.ndarray | None = None,
+             *, noise: float, low: float = RIM_LOW, fraction: float = RIM_FRACTION, depth: int = RIM_DEPTH,
+             fill_holes: bool = True) -> np.ndarray:
+    """Keep the dim rim of a silhouette: the pixels connected to it that differ clearly from the background.
+
+    Hysteresis thresholding: the silhouette (pixels above the view's threshold, cleaned) is the seed;
+    it grows, one pixel ring at a time and at most ``depth`` rings, into the pixels whose difference
+    exceeds ``low`` times the background ``noise`` and at least ``fraction`` of the largest
+    difference of the silhouette's pixels next to them.  A specimen shaded toward its outline (a head
+    lamp, a dark backdrop) shows a band there whose contrast falls below a global threshold while it
+    is still far above the background's noise; its difference falls smoothly, pixel to pixel, so it
+    passes the second test.  A pixel that the specimen covers by a fraction ``a`` shows ``a`` times
+    the contrast of the pixels inside it: the second test refuses the ones covered by less than
+    about ``fraction``, so a correct silhouette is not grown.  Pixels that look like a shadow on the
+    background (colour images: a darker copy of the background's colour, within the same tolerance)
+    are never added.
+
+    Parameters
+    ----------
+    mask : (H, W) bool
+        The silhouette, e.g. from :func:`clean_mask`.
+    diff : (H, W) float
+        The view's :func:`difference` image, grey levels.
+    image : (H, W, 3) uint8, optional
+        The view; with ``background``, the shadow test (grey views: no shadow test).
+    background : (H, W, 3) float, optional
+        The background model.
+    noise : float, grey levels
+        The background's pixel noise (:func:`background_noise`); <= 0 returns the mask unchanged.
+    low : float
+        The low threshold, in units of ``noise``.
+    fraction : float
+        In (0, 1]: a grown pixel's difference against the largest of its silhouette neighbours'.
+    depth : int, px
+        Rings grown at most (0 returns the mask unchanged).
+    fill_holes : bool
+        Fill the background regions the growth encloses (as :func:`clean_mask`).
+
+    Returns
+    -------
+    (H, W) bool
+        The mask, grown (a new array; the inputs are not changed).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> diff = np.zeros((9, 12), np.float32)
+    >>> diff[2:7, 2:6] = 40.0                  # the lit specimen
+    >>> diff[2:7, 6:9] = [30.0, 22.0, 15.0]    # its rim, shaded toward the outline
+    >>> diff[2:7, 9] = 5.0                     # the outline pixel, covered by about a third
+    >>> mask = diff > 25.0                     # a global threshold keeps the lit part only
+    >>> grown = grow_rim(mask, diff, noise=1.5)
+    >>> int(mask.sum()), int(grown.sum()), bool(grown[:, 9].any())
+    (25, 35, False)
+    """
+    import cv2
+
+    m = np.asarray(mask, dtype=bool)
+    d_all = np.asarray(diff, dtype=np.float32)
+    if m.shape != d_all.shape:
+        raise ValueError(f"mask {m.shape} and diff {d_all.shape} differ in size")
+    if not 0 < float(fraction) <= 1:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    out = m.copy()
+    if not (float(noise) > 0 and int(depth) > 0 and m.any()):
+        return out
+    box = _box(m.view(np.uint8), int(depth) + 2)
+    mb = m[box].astype(np.uint8)
+    d = d_all[box]
+    cand = (d > float(low) * float(noise)) & (mb == 0)
+    # only pixels within `depth` rings can be reached
+    cand &= cv2.dilate(mb, np.ones((3, 3), np.uint8), iterations=int(depth)).astype(bool)
+    if cand.any() and image is not None and background is not None and np.ndim(image) == 3 and np.ndim(background) == 3:
+        rows, cols = np.nonzero(cand)
+        img, bg = np.asarray(image)[box], np.asarray(background)[box]
+        shade = _shadow_like(img[rows, cols], bg[rows, cols], float(low) * float(noise))
+        cand[rows[shade], cols[shade]] = False
+    if not cand.any():
+        return out
+    k = np.ones((3, 3), np.uint8)
+    dm = np.where(mb != 0, d, 0.0).astype(np.float32)
+    frac = np.float32(fraction)
+    grew = False
+    for _ in range(int(depth)):
+        front = cand & cv2.dilate(mb, k).astype(bool)
+        if not front.any():
+            break
+        ref = cv2.dilate(dm, k)
+        add = front & (d >= frac * ref)
+        if not add.any():
+            break
+        grew = True
+        mb[add] = 1
+        dm[add] = d[add]
+        cand &= ~add
+    if grew:
+        sub = mb.astype(bool)
+        out[box] = _fill_holes(sub) if fill_holes else sub
+    return out
+
+
+def _shadow_like(img, bg, tol):
+    """(N,) bool: colours ``img`` (N, 3) that are a darker copy of the background's ``bg`` (N, 3), within ``tol``
+    grey levels (the colour distance of the residual after the best scaling of the background, as :func:`difference`)."""
+    i = np.asarray(img, np.float32)
+    b = np.asarray(bg, np.float32)
+    bb = np.maximum((b * b).sum(axis=1), 1.0)
+    g = (i * b).sum(axis=1) / bb
+    r = i - g[:, None] * b
+    return (g < 1.0) & (np.sqrt((r * r).sum(axis=1) / 3.0) < tol)
+
+
 def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, window: int = 5) -> np.ndarray:
     """Sub-pixel silhouette: the fraction of each pixel covered by the specimen.
 
@@ -353,7 +476,8 @@ def _coverage_in(image, background, m8, window):
 
 
 def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | None = None,
-               mode: Literal["color", "grey"] = "color", floor: float = 0.0, **clean: Any) -> Silhouette:
+               mode: Literal["color", "grey"] = "color", floor: float = 0.0, noise: float = 0.0,
+               **clean: Any) -> Silhouette:
     """Silhouette of one view by background subtraction.
 
     Parameters
@@ -366,6 +490,9 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     mode : {'color', 'grey'}
     floor : float
         Lowest automatic threshold (e.g. from the background noise).
+    noise : float
+        The background's noise (:func:`background_noise`), grey levels: > 0 keeps the
+        dim rim connected to the silhouette (:func:`grow_rim`); 0 (default) does not.
     **clean
         Options of :func:`clean_mask`.
 
@@ -378,4 +505,5 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     if t <= 0:
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
     mask = clean_mask(diff > t, **clean)
+    mask = grow_rim(mask, diff, image, background, noise=noise, fill_holes=clean.get("fill_holes", True))
     return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
