@@ -34,6 +34,7 @@ from ._subtract import (
     coverage,
     difference,
     grow_rim,
+    rim_near,
 )
 
 __all__ = ["SilhouetteModel", "silhouettes", "session_silhouettes"]
@@ -304,14 +305,15 @@ class SilhouetteModel:
             return Silhouette(m, m.astype(np.float32), None, "given")
         if self.keyed:
             return self._keyed(i, t, clean)
-        mask = clean_mask(self.differences[i] > t, **clean)
-        mask = grow_rim(mask, self.differences[i], self.images[i], self.background, noise=self.noise,
+        seed = clean_mask(self.differences[i] > t, **clean)
+        mask = grow_rim(seed, self.differences[i], self.images[i], self.background, noise=self.noise,
                         depth=self.rim_depth, fill_holes=clean.get("fill_holes", True))
         if not mask.any():
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"
             )
-        return Silhouette(mask, coverage(self.images[i], self.background, mask), t, "subtraction")
+        cov = coverage(self.images[i], self.background, mask, near=rim_near(seed, mask))
+        return Silhouette(mask, cov, t, "subtraction")
 
     def _keyed(self, i, t, clean):
         if clean:

@@ -387,6 +387,19 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
     return out
 
 
+def rim_near(seed: np.ndarray, grown: np.ndarray) -> np.ndarray | None:
+    """Where a rim was grown: the pixels within 2 px of those :func:`grow_rim` added to ``seed`` (None: none added).
+
+    :func:`coverage`'s ``near``: there the specimen's colour is taken from the nearest pixels.
+    """
+    import cv2
+
+    added = np.asarray(grown, dtype=bool) & ~np.asarray(seed, dtype=bool)
+    if not added.any():
+        return None
+    return cv2.dilate(added.view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+
+
 def _shadow_like(img, bg, tol):
     """(N,) bool: colours ``img`` (N, 3) that are a darker copy of the background's ``bg`` (N, 3), within ``tol``
     grey levels (the colour distance of the residual after the best scaling of the background, as :func:`difference`)."""
@@ -398,7 +411,8 @@ def _shadow_like(img, bg, tol):
     return (g < 1.0) & (np.sqrt((r * r).sum(axis=1) / 3.0) < tol)
 
 
-def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, window: int = 5) -> np.ndarray:
+def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, window: int = 5,
+             near: np.ndarray | None = None) -> np.ndarray:
     """Sub-pixel silhouette: the fraction of each pixel covered by the specimen.
 
     A pixel on the silhouette's edge that the specimen covers by a fraction
@@ -417,6 +431,12 @@ def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, win
         The cleaned silhouette (:func:`clean_mask`).
     window : int, px
         Size of the square over which the specimen's colour is averaged.
+    near : (H, W) bool, optional
+        Where the specimen's shade changes toward its outline (a rim kept by
+        :func:`grow_rim`): there ``F`` is taken from the nearest pixels, the
+        inner ones next to the pixel (3 x 3), else the mask's next to it, else
+        the ``window`` square's; the mean of the whole square would be brighter
+        than the rim and take a covered pixel for a partly covered one.
 
     Returns
     -------
@@ -431,11 +451,12 @@ def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, win
     # only the mask's box (widened by the edge band and the window) takes part
     box = _box(m8, 2 + int(window) // 2 + 1)
     if box is not None:
-        cov[box] = _coverage_in(image[box], background[box], m8[box], window)
+        nb = None if near is None else np.asarray(near, dtype=bool)[box]
+        cov[box] = _coverage_in(image[box], background[box], m8[box], window, nb)
     return cov
 
 
-def _coverage_in(image, background, m8, window):
+def _coverage_in(image, background, m8, window, near=None):
     """:func:`coverage` of a crop whose border lies outside the mask's edge band and window."""
     import cv2
 
@@ -463,6 +484,8 @@ def _coverage_in(image, background, m8, window):
     )
     with np.errstate(invalid="ignore", divide="ignore"):
         fg = fg / weight[:, None]
+    if near is not None and near[rows, cols].any():
+        _nearest_colour(img, inner, m8, rows, cols, near[rows, cols], fg, weight)
     b = bg[rows, cols]
     d_img = img[rows, cols] - b
     d_fg = fg - b
@@ -473,6 +496,29 @@ def _coverage_in(image, background, m8, window):
     ok = (weight > 0) & (den > 1.0)
     cov[rows, cols] = np.where(ok, np.clip(a, 0.0, 1.0), m8[rows, cols].astype(np.float32))
     return cov
+
+
+def _nearest_colour(img, inner, m8, rows, cols, sel, fg, weight):
+    """Replace, in place, the specimen's colour ``fg`` (and ``weight``) of the band pixels ``sel`` by the mean of
+    their nearest specimen pixels: the inner ones in the 3 x 3 square, else the mask's (the window's mean stays
+    where neither has one)."""
+    import cv2
+
+    r, c = rows[sel], cols[sel]
+    idx = np.flatnonzero(sel)
+    done = np.zeros(idx.size, dtype=bool)
+    for src in (inner, m8):
+        srcf = src.astype(np.float32)
+        w = cv2.boxFilter(srcf, -1, (3, 3), normalize=False)[r, c]
+        take = ~done & (w > 0)
+        if take.any():
+            f = np.stack([cv2.boxFilter(img[..., k] * srcf, -1, (3, 3), normalize=False)[r, c]
+                          for k in range(img.shape[2])], axis=-1)
+            fg[idx[take]] = f[take] / w[take, None]
+            weight[idx[take]] = w[take]
+            done |= take
+        if done.all():
+            break
 
 
 def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | None = None,
@@ -504,6 +550,6 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     t = auto_threshold(diff, floor=floor) if threshold is None else float(threshold)
     if t <= 0:
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
-    mask = clean_mask(diff > t, **clean)
-    mask = grow_rim(mask, diff, image, background, noise=noise, fill_holes=clean.get("fill_holes", True))
-    return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
+    seed = clean_mask(diff > t, **clean)
+    mask = grow_rim(seed, diff, image, background, noise=noise, fill_holes=clean.get("fill_holes", True))
+    return Silhouette(mask, coverage(image, background, mask, near=rim_near(seed, mask)), t, "subtraction")
