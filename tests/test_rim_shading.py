@@ -72,10 +72,11 @@ def test_a_rim_shaded_view_keeps_its_rim(rim_scene, cover):
     assert (lost_on <= 0.6 * lost_off).all(), (lost_on, lost_off)
     assert (grown_on <= grown_off).all(), (grown_on, grown_off)
     # what the hull sees: the coverage's sum against the exact coverage's, per view; measured -6.4 to -8.5 %
-    # with Li's threshold alone, -2.6 to -4.9 % with the rim kept (the rim's colour from its nearest pixels)
+    # with Li's threshold alone, -1.0 to -3.7 % with the rim kept (its edge pixels counted covered, the pixels
+    # outside it measured against their nearest specimen pixels): 3.2-5.4 points better in every view
     err_off = np.array([s.coverage.sum() / c.sum() - 1 for s, c in zip(off, cover)])
     err_on = np.array([s.coverage.sum() / c.sum() - 1 for s, c in zip(on, cover)])
-    assert (err_on > err_off + 0.015).all() and (err_on < 0.0).all(), (err_on, err_off)
+    assert (err_on > err_off + 0.02).all() and (err_on < 0.0).all(), (err_on, err_off)
 
 
 def test_a_correct_silhouette_is_not_grown(even_scene, rim_scene, cover):

@@ -127,6 +127,7 @@ class SilhouetteModel:
         self._shadow = [0.0] * n
         self._auto = [None] * n
         self._auto_info = [None] * n
+        self._rim = [None] * n  # per view, where its rim was kept (rim_near): the joint step's coverage uses it
         if need:
             self.background = self._background(background_frames, background, [self.images[i] for i in need])
             if not self.keyed:
@@ -312,7 +313,8 @@ class SilhouetteModel:
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"
             )
-        cov = coverage(self.images[i], self.background, mask, near=rim_near(seed, mask))
+        self._rim[i] = rim_near(seed, mask)
+        cov = coverage(self.images[i], self.background, mask, near=self._rim[i])
         return Silhouette(mask, cov, t, "subtraction")
 
     def _keyed(self, i, t, clean):
@@ -395,7 +397,7 @@ class SilhouetteModel:
 
     def _coverage(self, i, mask):
         if not self.keyed:
-            return coverage(self.images[i], self.background, mask)
+            return coverage(self.images[i], self.background, mask, near=self._rim[i])
         bg = self.background
         full = np.broadcast_to(bg, np.shape(self.images[i])) if np.ndim(bg) == 1 else bg
         return coverage(self.images[i], np.asarray(full, np.float32) * self.gains[i], mask)
