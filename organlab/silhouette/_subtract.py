@@ -357,7 +357,8 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
     d = d_all[box]
     cand = (d > float(low) * float(noise)) & (mb == 0)
     # only pixels within `depth` rings can be reached
-    cand &= cv2.dilate(mb, np.ones((3, 3), np.uint8), iterations=int(depth)).astype(bool)
+    reach = 2 * int(depth) + 1
+    cand &= cv2.dilate(mb, cv2.getStructuringElement(cv2.MORPH_RECT, (reach, reach))).astype(bool)
     if cand.any() and image is not None and background is not None and np.ndim(image) == 3 and np.ndim(background) == 3:
         rows, cols = np.nonzero(cand)
         img, bg = np.asarray(image)[box], np.asarray(background)[box]
@@ -366,24 +367,26 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
     if not cand.any():
         return out
     k = np.ones((3, 3), np.uint8)
-    dm = np.where(mb != 0, d, 0.0).astype(np.float32)
+    sub = _box(cand.view(np.uint8), 2)  # the growth happens only about the candidates (their 3 x 3 squares inside)
+    m_s, d_s, c_s = mb[sub], d[sub], cand[sub]  # views: the growth writes into mb
+    dm = np.where(m_s != 0, d_s, 0.0).astype(np.float32)
     frac = np.float32(fraction)
     grew = False
     for _ in range(int(depth)):
-        front = cand & cv2.dilate(mb, k).astype(bool)
+        front = c_s & cv2.dilate(m_s, k).astype(bool)
         if not front.any():
             break
         ref = cv2.dilate(dm, k)
-        add = front & (d >= frac * ref)
+        add = front & (d_s >= frac * ref)
         if not add.any():
             break
         grew = True
-        mb[add] = 1
-        dm[add] = d[add]
-        cand &= ~add
+        m_s[add] = 1
+        dm[add] = d_s[add]
+        c_s &= ~add
     if grew:
-        sub = mb.astype(bool)
-        out[box] = _fill_holes(sub) if fill_holes else sub
+        grown = mb.astype(bool)
+        out[box] = _fill_holes(grown) if fill_holes else grown
     return out
 
 
@@ -395,9 +398,12 @@ def rim_near(seed: np.ndarray, grown: np.ndarray) -> np.ndarray | None:
     import cv2
 
     added = np.asarray(grown, dtype=bool) & ~np.asarray(seed, dtype=bool)
-    if not added.any():
+    box = _box(added.view(np.uint8), 2)
+    if box is None:
         return None
-    return cv2.dilate(added.view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    near = np.zeros(added.shape, dtype=bool)
+    near[box] = cv2.dilate(added[box].view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return near
 
 
 def _shadow_like(img, bg, tol):
@@ -508,20 +514,19 @@ def _coverage_in(image, background, m8, window, near=None):
 def _nearest_colour(img, inner, m8, rows, cols, sel, fg, weight):
     """Replace, in place, the specimen's colour ``fg`` (and ``weight``) of the band pixels ``sel`` by the mean of
     their nearest specimen pixels: the inner ones in the 3 x 3 square, else the mask's (the window's mean stays
-    where neither has one)."""
-    import cv2
-
-    r, c = rows[sel], cols[sel]
+    where neither has one); at the image's border the edge pixels stand for the ones beyond."""
     idx = np.flatnonzero(sel)
+    h, w_ = inner.shape
+    r = np.clip(rows[idx][:, None] + np.array([-1, -1, -1, 0, 0, 0, 1, 1, 1]), 0, h - 1)
+    c = np.clip(cols[idx][:, None] + np.array([-1, 0, 1, -1, 0, 1, -1, 0, 1]), 0, w_ - 1)
+    colours = img[r, c]  # (N, 9, channels)
     done = np.zeros(idx.size, dtype=bool)
     for src in (inner, m8):
-        srcf = src.astype(np.float32)
-        w = cv2.boxFilter(srcf, -1, (3, 3), normalize=False)[r, c]
+        w8 = (src[r, c] != 0).astype(np.float32)  # (N, 9)
+        w = w8.sum(axis=1)
         take = ~done & (w > 0)
         if take.any():
-            f = np.stack([cv2.boxFilter(img[..., k] * srcf, -1, (3, 3), normalize=False)[r, c]
-                          for k in range(img.shape[2])], axis=-1)
-            fg[idx[take]] = f[take] / w[take, None]
+            fg[idx[take]] = (colours[take] * w8[take, :, None]).sum(axis=1) / w[take, None]
             weight[idx[take]] = w[take]
             done |= take
         if done.all():
