@@ -137,3 +137,14 @@ def test_grow_rim_arguments():
         grow_rim(mask, diff[:4], noise=1.0)
     with pytest.raises(ValueError, match="fraction"):
         grow_rim(mask, diff, noise=1.0, fraction=0.0)
+
+
+def test_keyed_views_are_not_changed(even_scene):
+    """The rim step is background subtraction's: keyed views (a backdrop session, as the hard mode) are as before."""
+    images, frames = even_scene
+    model = SilhouetteModel(images, frames, backdrop={"color": "frames"})
+    on = model.silhouettes()
+    model.rim_depth = 0
+    off = model.silhouettes()
+    for a, b in zip(on, off):
+        assert np.array_equal(a.mask, b.mask) and np.array_equal(a.coverage, b.coverage)

@@ -458,7 +458,7 @@ def silhouettes(
     >>> len(sils), sils[0].mask.shape, sils[0].source, round(sils[0].threshold, 1)
     (6, (480, 640), 'subtraction', 17.5)
     >>> [int(sil.mask.sum()) for sil in sils]  # specimen pixels per view
-    [11330, 10954, 11178, 11361, 11035, 11216]
+    [11333, 10954, 11179, 11363, 11037, 11218]
     """
     if not isinstance(session, Session):
         session = load_session(session)
