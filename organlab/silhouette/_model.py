@@ -74,9 +74,13 @@ class SilhouetteModel:
         the median colour of the views' border bands.  ``mode`` does not
         apply then.
     rim_depth : int, px
-        Subtraction: each view's silhouette keeps the dim rim connected to
-        it, at most this many pixels out (:func:`organlab.silhouette.grow_rim`,
-        hysteresis down to 3 times the background noise); 0 turns it off.
+        Subtraction at the automatic threshold: each view's silhouette keeps
+        the dim rim connected to it, at most this many pixels out
+        (:func:`organlab.silhouette.grow_rim`, hysteresis down to 3 times the
+        background noise); 0 turns it off.  A threshold given
+        (:meth:`silhouettes`'s ``threshold``, the slider, ``--threshold``) is
+        used as it is, the user's outline, unless it is the view's automatic
+        one (a face or a report giving it back).
 
     Attributes
     ----------
@@ -273,7 +277,8 @@ class SilhouetteModel:
             thresholds = [self._checked(threshold)] * len(self)
         n = len(self)
         out = []
-        for i, sil in enumerate(_map_views(lambda i: self._silhouette(i, thresholds[i], clean), range(n))):
+        auto = threshold is None  # the dim rim is kept at the automatic thresholds (grow_rim)
+        for i, sil in enumerate(_map_views(lambda i: self._silhouette(i, thresholds[i], clean, auto), range(n))):
             out.append(sil)
             if progress is not None:
                 progress(i + 1, n)
@@ -292,7 +297,7 @@ class SilhouetteModel:
             t = self.auto_thresholds()[i] if self.masks[i] is None else None
         else:
             t = self._checked(threshold)
-        return self._silhouette(i, t, clean)
+        return self._silhouette(i, t, clean, threshold is None)
 
     def _checked(self, threshold):
         t = float(threshold)
@@ -300,15 +305,16 @@ class SilhouetteModel:
             raise SessionError(f"threshold must be > 0 {self.units}, got {t}")
         return t
 
-    def _silhouette(self, i, t, clean):
+    def _silhouette(self, i, t, clean, auto=False):
         if self.masks[i] is not None:
             m = self.masks[i]
             return Silhouette(m, m.astype(np.float32), None, "given")
         if self.keyed:
             return self._keyed(i, t, clean)
+        auto = auto or (self._auto[i] is not None and t == self._auto[i])  # the automatic one, given back
         seed = clean_mask(self.differences[i] > t, **clean)
         mask = grow_rim(seed, self.differences[i], self.images[i], self.background, noise=self.noise,
-                        depth=self.rim_depth, fill_holes=clean.get("fill_holes", True))
+                        depth=self.rim_depth if auto else 0, fill_holes=clean.get("fill_holes", True))
         if not mask.any():
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"

@@ -550,7 +550,8 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
         Lowest automatic threshold (e.g. from the background noise).
     noise : float
         The background's noise (:func:`background_noise`), grey levels: > 0 keeps the
-        dim rim connected to the silhouette (:func:`grow_rim`); 0 (default) does not.
+        dim rim connected to the silhouette at the automatic threshold (:func:`grow_rim`;
+        a threshold given is used as it is); 0 (default) does not.
     **clean
         Options of :func:`clean_mask`.
 
@@ -563,5 +564,6 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     if t <= 0:
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
     seed = clean_mask(diff > t, **clean)
-    mask = grow_rim(seed, diff, image, background, noise=noise, fill_holes=clean.get("fill_holes", True))
+    mask = grow_rim(seed, diff, image, background, noise=noise if threshold is None else 0.0,
+                    fill_holes=clean.get("fill_holes", True))
     return Silhouette(mask, coverage(image, background, mask, near=rim_near(seed, mask)), t, "subtraction")
