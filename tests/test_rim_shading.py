@@ -72,11 +72,11 @@ def test_a_rim_shaded_view_keeps_its_rim(rim_scene, cover):
     assert (lost_on <= 0.6 * lost_off).all(), (lost_on, lost_off)
     assert (grown_on <= grown_off).all(), (grown_on, grown_off)
     # what the hull sees: the coverage's sum against the exact coverage's, per view; measured -6.4 to -8.5 %
-    # with Li's threshold alone, -1.0 to -3.7 % with the rim kept (its edge pixels counted covered, the pixels
-    # outside it measured against their nearest specimen pixels): 3.2-5.4 points better in every view
+    # with Li's threshold alone, -0.1 to -1.5 % with the rim kept (near it, the edge pixels counted covered, the
+    # pixels outside measured against their nearest specimen pixels): 5.0-7.0 points better in every view
     err_off = np.array([s.coverage.sum() / c.sum() - 1 for s, c in zip(off, cover)])
     err_on = np.array([s.coverage.sum() / c.sum() - 1 for s, c in zip(on, cover)])
-    assert (err_on > err_off + 0.02).all() and (err_on < 0.0).all(), (err_on, err_off)
+    assert (err_on > err_off + 0.035).all() and (np.abs(err_on) < 0.025).all(), (err_on, err_off)
 
 
 def test_a_correct_silhouette_is_not_grown(even_scene, rim_scene, cover):
@@ -98,6 +98,9 @@ def test_a_correct_silhouette_is_not_grown(even_scene, rim_scene, cover):
     model.rim_depth = 0
     off = model.silhouettes()
     assert np.array_equal(_lost_and_grown(on, cover)[1], _lost_and_grown(off, cover)[1])
+    # nor its coverage beyond the exact (measured: -0.3 to -0.9 % per view against -0.9 to -1.4 % without the
+    # step: the few pixels it adds make their neighbourhood's edge pixels count as covered)
+    assert all(s.coverage.sum() <= c.sum() for s, c in zip(on, cover))
 
 
 def test_a_shadow_is_not_added(even_scene, cover):
