@@ -412,8 +412,9 @@ def rim_near(seed: np.ndarray, grown: np.ndarray, *, reach: int = RIM_DEPTH) -> 
 
 
 def _shadow_like(img, bg, tol):
-    """(N,) bool: colours ``img`` (N, 3) that are a darker copy of the background's ``bg`` (N, 3), within ``tol``
-    grey levels (the colour distance of the residual after the best scaling of the background, as :func:`difference`)."""
+    """(N,) bool: colours ``img`` (N, 3) that are a darker copy of the background's ``bg`` (N, 3), within
+    ``tol`` grey levels (the colour distance of the residual after the best scaling of the background, as
+    :func:`difference`)."""
     i = np.asarray(img, np.float32)
     b = np.asarray(bg, np.float32)
     bb = np.maximum((b * b).sum(axis=1), 1.0)
