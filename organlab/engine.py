@@ -120,7 +120,8 @@ class Settings:
     threshold : float or None
         Silhouette threshold for every view, grey levels (background
         subtraction) or Delta E (a session keyed against a ``backdrop``);
-        None = automatic per view.
+        None = automatic per view (subtraction then keeps each view's dim
+        rim: :func:`organlab.silhouette.grow_rim`, docs/silhouettes.md).
     method : {'hull', 'coloring', 'space_carving', 'photo'}
         ``'photo'``: patch NCC between neighbouring views (textured specimens; docs/coloring.md).
     hull : {'subvoxel', 'thesis'}

@@ -76,13 +76,14 @@ def test_rethreshold_on_an_unseen_scene_equals_fresh_runs():
     frames, views = _scene(np.random.default_rng(3))
     model = SilhouetteModel(views, frames)
     bg = background_model(frames)
-    floor = 5.0 * background_noise(frames)
+    noise = background_noise(frames)  # the model keeps each view's dim rim down to 3 noise sigmas (grow_rim)
+    floor = 5.0 * noise
     assert np.array_equal(model.background, bg)
     for t in (None, 20.0, 45.0):
-        fresh = [silhouette(v, bg, threshold=t, floor=floor) for v in views]
+        fresh = [silhouette(v, bg, threshold=t, floor=floor, noise=noise) for v in views]
         _same(model.silhouettes(threshold=t), fresh)
         _same(model.silhouettes(threshold=t, close_radius=0, fill_holes=False),
-              [silhouette(v, bg, threshold=t, floor=floor, close_radius=0, fill_holes=False) for v in views])
+              [silhouette(v, bg, threshold=t, floor=floor, noise=noise, close_radius=0, fill_holes=False) for v in views])
     with pytest.raises(SessionError, match="threshold must be > 0"):
         model.silhouettes(threshold=0.0)
     with pytest.raises(SessionError, match="view 0: the silhouette is empty"):

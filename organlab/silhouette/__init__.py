@@ -7,6 +7,7 @@ scene.  The stage is a chain of small functions::
     diff = difference(image, bg)                  # grey or colour distance
     t = auto_threshold(diff)                      # Li's, or a value picked by the user
     mask = clean_mask(diff > t)                   # opening, closing, components, holes
+    mask = grow_rim(mask, diff, image, bg, noise=n)  # its dim rim (hysteresis down to 3 noise sigmas)
     cov = coverage(image, bg, mask)               # sub-pixel silhouette in [0, 1]
 
 :func:`silhouettes` runs it for every view of a session (through
@@ -25,7 +26,16 @@ Modules: ``_subtract`` (the functions above), ``_keying`` (backdrop keying),
 
 from ..masks import Silhouette, as_arrays
 from ._model import SilhouetteModel, session_silhouettes, silhouettes
-from ._subtract import auto_threshold, background_model, background_noise, clean_mask, coverage, difference, silhouette
+from ._subtract import (
+    auto_threshold,
+    background_model,
+    background_noise,
+    clean_mask,
+    coverage,
+    difference,
+    grow_rim,
+    silhouette,
+)
 
 __all__ = [
     "background_model",
@@ -33,6 +43,7 @@ __all__ = [
     "difference",
     "auto_threshold",
     "clean_mask",
+    "grow_rim",
     "coverage",
     "Silhouette",
     "silhouette",

@@ -25,7 +25,17 @@ from ..masks import Silhouette
 from ..session import Session, load_session
 from ._joint import MIN_VIEWS, joint_masks
 from ._keying import KeyInfo, auto_key_threshold, clean_scaled, estimate_backdrop, key_distance
-from ._subtract import auto_threshold, background_model, background_noise, clean_mask, coverage, difference
+from ._subtract import (
+    RIM_DEPTH,
+    auto_threshold,
+    background_model,
+    background_noise,
+    clean_mask,
+    coverage,
+    difference,
+    grow_rim,
+    rim_near,
+)
 
 __all__ = ["SilhouetteModel", "silhouettes", "session_silhouettes"]
 
@@ -63,6 +73,14 @@ class SilhouetteModel:
         model; ``"frames"`` needs ``background_frames``, ``"border"`` takes
         the median colour of the views' border bands.  ``mode`` does not
         apply then.
+    rim_depth : int, px
+        Subtraction at the automatic threshold: each view's silhouette keeps
+        the dim rim connected to it, at most this many pixels out
+        (:func:`organlab.silhouette.grow_rim`, hysteresis down to 3 times the
+        background noise); 0 turns it off.  A threshold given
+        (:meth:`silhouettes`'s ``threshold``, the slider, ``--threshold``) is
+        used as it is, the user's outline, unless it is the view's automatic
+        one (a face or a report giving it back).
 
     Attributes
     ----------
@@ -72,6 +90,8 @@ class SilhouetteModel:
     units : str
         The threshold's units: ``'grey levels'`` (subtraction) or
         ``'Delta E'`` (CIE76 colour difference, keying).
+    noise : float
+        Subtraction: :func:`background_noise` of the frames, grey levels (0 for keying).
     floor : float
         Lowest automatic threshold (subtraction: 5 times
         :func:`background_noise`; keying: 0, its rule has its own noise term).
@@ -85,7 +105,7 @@ class SilhouetteModel:
     def __init__(self, images: Sequence[np.ndarray], background_frames: Sequence[np.ndarray] | None = None, *,
                  mode: Literal["color", "grey"] = "color", background: Literal["median", "mean"] = "median",
                  masks: Sequence[np.ndarray | None] | None = None, names: Sequence[str] | None = None,
-                 backdrop: dict | None = None) -> None:
+                 backdrop: dict | None = None, rim_depth: int = RIM_DEPTH) -> None:
         images = list(images)
         n = len(images)
         masks = [None] * n if masks is None else list(masks)
@@ -104,15 +124,19 @@ class SilhouetteModel:
         self.units = "Delta E" if self.keyed else "grey levels"
         self.background = None
         self.floor = 0.0
+        self.noise = 0.0
+        self.rim_depth = int(rim_depth)
         self.differences = [None] * n
         self.gains = [1.0] * n
         self._shadow = [0.0] * n
         self._auto = [None] * n
         self._auto_info = [None] * n
+        self._rim = [None] * n  # per view, where its rim was kept (rim_near): the joint step's coverage uses it
         if need:
             self.background = self._background(background_frames, background, [self.images[i] for i in need])
             if not self.keyed:
-                self.floor = 5.0 * background_noise(list(background_frames))
+                self.noise = background_noise(list(background_frames))
+                self.floor = 5.0 * self.noise
             diffs = _map_views(lambda i: self._difference(i), need)
             for i, d in zip(need, diffs):
                 self.differences[i] = d
@@ -253,7 +277,8 @@ class SilhouetteModel:
             thresholds = [self._checked(threshold)] * len(self)
         n = len(self)
         out = []
-        for i, sil in enumerate(_map_views(lambda i: self._silhouette(i, thresholds[i], clean), range(n))):
+        auto = threshold is None  # the dim rim is kept at the automatic thresholds (grow_rim)
+        for i, sil in enumerate(_map_views(lambda i: self._silhouette(i, thresholds[i], clean, auto), range(n))):
             out.append(sil)
             if progress is not None:
                 progress(i + 1, n)
@@ -272,7 +297,7 @@ class SilhouetteModel:
             t = self.auto_thresholds()[i] if self.masks[i] is None else None
         else:
             t = self._checked(threshold)
-        return self._silhouette(i, t, clean)
+        return self._silhouette(i, t, clean, threshold is None)
 
     def _checked(self, threshold):
         t = float(threshold)
@@ -280,18 +305,23 @@ class SilhouetteModel:
             raise SessionError(f"threshold must be > 0 {self.units}, got {t}")
         return t
 
-    def _silhouette(self, i, t, clean):
+    def _silhouette(self, i, t, clean, auto=False):
         if self.masks[i] is not None:
             m = self.masks[i]
             return Silhouette(m, m.astype(np.float32), None, "given")
         if self.keyed:
             return self._keyed(i, t, clean)
-        mask = clean_mask(self.differences[i] > t, **clean)
+        auto = auto or (self._auto[i] is not None and t == self._auto[i])  # the automatic one, given back
+        seed = clean_mask(self.differences[i] > t, **clean)
+        mask = grow_rim(seed, self.differences[i], self.images[i], self.background, noise=self.noise,
+                        depth=self.rim_depth if auto else 0, fill_holes=clean.get("fill_holes", True))
         if not mask.any():
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"
             )
-        return Silhouette(mask, coverage(self.images[i], self.background, mask), t, "subtraction")
+        self._rim[i] = rim_near(seed, mask)
+        cov = coverage(self.images[i], self.background, mask, near=self._rim[i])
+        return Silhouette(mask, cov, t, "subtraction")
 
     def _keyed(self, i, t, clean):
         if clean:
@@ -373,7 +403,7 @@ class SilhouetteModel:
 
     def _coverage(self, i, mask):
         if not self.keyed:
-            return coverage(self.images[i], self.background, mask)
+            return coverage(self.images[i], self.background, mask, near=self._rim[i])
         bg = self.background
         full = np.broadcast_to(bg, np.shape(self.images[i])) if np.ndim(bg) == 1 else bg
         return coverage(self.images[i], np.asarray(full, np.float32) * self.gains[i], mask)
@@ -434,7 +464,7 @@ def silhouettes(
     >>> len(sils), sils[0].mask.shape, sils[0].source, round(sils[0].threshold, 1)
     (6, (480, 640), 'subtraction', 17.5)
     >>> [int(sil.mask.sum()) for sil in sils]  # specimen pixels per view
-    [11330, 10954, 11178, 11361, 11035, 11216]
+    [11333, 10954, 11179, 11363, 11037, 11218]
     """
     if not isinstance(session, Session):
         session = load_session(session)

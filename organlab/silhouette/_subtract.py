@@ -7,6 +7,7 @@ scene.  The stage is a chain of small functions::
     diff = difference(image, bg)                  # grey or colour distance
     t = auto_threshold(diff)                      # Li's, or a value picked by the user
     mask = clean_mask(diff > t)                   # opening, closing, components, holes
+    mask = grow_rim(mask, diff, image, bg, noise=n)  # its dim rim (hysteresis down to 3 noise sigmas)
     cov = coverage(image, bg, mask)               # sub-pixel silhouette in [0, 1]
 
 :func:`silhouettes` runs it for every view of a session, using a
@@ -29,9 +30,19 @@ __all__ = [
     "difference",
     "auto_threshold",
     "clean_mask",
+    "grow_rim",
     "coverage",
     "silhouette",
 ]
+
+#: grow_rim: the low threshold in units of the background noise (a colour distance of 3 noise
+#: standard deviations: 6e-6 of the background's pixels, as chi with 3 degrees of freedom).
+RIM_LOW = 3.0
+#: grow_rim: a grown pixel shows at least this fraction of the largest difference of the silhouette's
+#: pixels next to it (a pixel covered by a fraction ``a`` of the specimen shows ``a`` times its contrast).
+RIM_FRACTION = 0.5
+#: grow_rim: the rim is grown at most this many pixels out from the silhouette.
+RIM_DEPTH = 10
 
 
 def _stack(frames):
@@ -275,7 +286,145 @@ def _fill_holes(out):
     return out | ~border[lab2]
 
 
-def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, window: int = 5) -> np.ndarray:
+def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None, background: np.ndarray | None = None,
+             *, noise: float, low: float = RIM_LOW, fraction: float = RIM_FRACTION, depth: int = RIM_DEPTH,
+             fill_holes: bool = True) -> np.ndarray:
+    """Keep the dim rim of a silhouette: the pixels connected to it that differ clearly from the background.
+
+    Hysteresis thresholding: the silhouette (pixels above the view's threshold, cleaned) is the seed;
+    it grows, one pixel ring at a time and at most ``depth`` rings, into the pixels whose difference
+    exceeds ``low`` times the background ``noise`` and at least ``fraction`` of the largest
+    difference of the silhouette's pixels next to them.  A specimen shaded toward its outline (a head
+    lamp, a dark backdrop) shows a band there whose contrast falls below a global threshold while it
+    is still far above the background's noise; its difference falls smoothly, pixel to pixel, so it
+    passes the second test.  A pixel that the specimen covers by a fraction ``a`` shows ``a`` times
+    the contrast of the pixels inside it: the second test refuses the ones covered by less than
+    about ``fraction``, so a correct silhouette is not grown.  Pixels that look like a shadow on the
+    background (colour images: a darker copy of the background's colour, within the same tolerance)
+    are never added.
+
+    Parameters
+    ----------
+    mask : (H, W) bool
+        The silhouette, e.g. from :func:`clean_mask`.
+    diff : (H, W) float
+        The view's :func:`difference` image, grey levels.
+    image : (H, W, 3) uint8, optional
+        The view; with ``background``, the shadow test (grey views: no shadow test).
+    background : (H, W, 3) float, optional
+        The background model.
+    noise : float, grey levels
+        The background's pixel noise (:func:`background_noise`); <= 0 returns the mask unchanged.
+    low : float
+        The low threshold, in units of ``noise``.
+    fraction : float
+        In (0, 1]: a grown pixel's difference against the largest of its silhouette neighbours'.
+    depth : int, px
+        Rings grown at most (0 returns the mask unchanged).
+    fill_holes : bool
+        Fill the background regions the growth encloses (as :func:`clean_mask`).
+
+    Returns
+    -------
+    (H, W) bool
+        The mask, grown (a new array; the inputs are not changed).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> diff = np.zeros((9, 12), np.float32)
+    >>> diff[2:7, 2:6] = 40.0                  # the lit specimen
+    >>> diff[2:7, 6:9] = [30.0, 22.0, 15.0]    # its rim, shaded toward the outline
+    >>> diff[2:7, 9] = 5.0                     # the outline pixel, covered by about a third
+    >>> mask = diff > 25.0                     # a global threshold keeps the lit part only
+    >>> grown = grow_rim(mask, diff, noise=1.5)
+    >>> int(mask.sum()), int(grown.sum()), bool(grown[:, 9].any())
+    (25, 35, False)
+    """
+    import cv2
+
+    m = np.asarray(mask, dtype=bool)
+    d_all = np.asarray(diff, dtype=np.float32)
+    if m.shape != d_all.shape:
+        raise ValueError(f"mask {m.shape} and diff {d_all.shape} differ in size")
+    if not 0 < float(fraction) <= 1:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    out = m.copy()
+    if not (float(noise) > 0 and int(depth) > 0 and m.any()):
+        return out
+    box = _box(m.view(np.uint8), int(depth) + 2)
+    mb = m[box].astype(np.uint8)
+    d = d_all[box]
+    cand = (d > float(low) * float(noise)) & (mb == 0)
+    # only pixels within `depth` rings can be reached
+    reach = 2 * int(depth) + 1
+    cand &= cv2.dilate(mb, cv2.getStructuringElement(cv2.MORPH_RECT, (reach, reach))).astype(bool)
+    if cand.any() and image is not None and background is not None and np.ndim(image) == 3 and np.ndim(background) == 3:
+        rows, cols = np.nonzero(cand)
+        img, bg = np.asarray(image)[box], np.asarray(background)[box]
+        shade = _shadow_like(img[rows, cols], bg[rows, cols], float(low) * float(noise))
+        cand[rows[shade], cols[shade]] = False
+    if not cand.any():
+        return out
+    k = np.ones((3, 3), np.uint8)
+    sub = _box(cand.view(np.uint8), 2)  # the growth happens only about the candidates (their 3 x 3 squares inside)
+    m_s, d_s, c_s = mb[sub], d[sub], cand[sub]  # views: the growth writes into mb
+    dm = np.where(m_s != 0, d_s, 0.0).astype(np.float32)
+    frac = np.float32(fraction)
+    grew = False
+    for _ in range(int(depth)):
+        front = c_s & cv2.dilate(m_s, k).astype(bool)
+        if not front.any():
+            break
+        ref = cv2.dilate(dm, k)
+        add = front & (d_s >= frac * ref)
+        if not add.any():
+            break
+        grew = True
+        m_s[add] = 1
+        dm[add] = d_s[add]
+        c_s &= ~add
+    if grew:
+        grown = mb.astype(bool)
+        out[box] = _fill_holes(grown) if fill_holes else grown
+    return out
+
+
+def rim_near(seed: np.ndarray, grown: np.ndarray, *, reach: int = RIM_DEPTH) -> np.ndarray | None:
+    """Where a rim was grown: the pixels within ``reach`` px (chessboard) of those :func:`grow_rim` added to
+    ``seed`` (None: none added).
+
+    :func:`coverage`'s ``near``.  The shade that made :func:`grow_rim` add pixels falls along the outline
+    beyond them too, where the seed already reached the outline; as far as the growth may reach (``RIM_DEPTH``).
+    Measured at 1 mm, 36 views: reach 2 / 6 / 10 px gave -2.34 / -1.67 / -1.20 % on the ``aaa-3`` rim render
+    and -0.185 / -0.172 / -0.159 % on the sample (-0.213 % without the rim step).
+    """
+    import cv2
+
+    added = np.asarray(grown, dtype=bool) & ~np.asarray(seed, dtype=bool)
+    box = _box(added.view(np.uint8), int(reach))
+    if box is None:
+        return None
+    near = np.zeros(added.shape, dtype=bool)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * int(reach) + 1, 2 * int(reach) + 1))
+    near[box] = cv2.dilate(added[box].view(np.uint8), kernel).astype(bool)
+    return near
+
+
+def _shadow_like(img, bg, tol):
+    """(N,) bool: colours ``img`` (N, 3) that are a darker copy of the background's ``bg`` (N, 3), within
+    ``tol`` grey levels (the colour distance of the residual after the best scaling of the background, as
+    :func:`difference`)."""
+    i = np.asarray(img, np.float32)
+    b = np.asarray(bg, np.float32)
+    bb = np.maximum((b * b).sum(axis=1), 1.0)
+    g = (i * b).sum(axis=1) / bb
+    r = i - g[:, None] * b
+    return (g < 1.0) & (np.sqrt((r * r).sum(axis=1) / 3.0) < tol)
+
+
+def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, window: int = 5,
+             near: np.ndarray | None = None) -> np.ndarray:
     """Sub-pixel silhouette: the fraction of each pixel covered by the specimen.
 
     A pixel on the silhouette's edge that the specimen covers by a fraction
@@ -294,6 +443,17 @@ def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, win
         The cleaned silhouette (:func:`clean_mask`).
     window : int, px
         Size of the square over which the specimen's colour is averaged.
+    near : (H, W) bool, optional
+        Where the specimen's shade falls toward its outline (a rim kept by
+        :func:`grow_rim`, :func:`rim_near`).  There the mask's own edge pixels
+        count as covered (1: they passed the rim's contrast test, their
+        dimness is their shade), and the pixels just outside take ``F`` from
+        their nearest specimen pixels (the inner ones in the 3 x 3 square, else
+        the mask's): the mean of the whole window would be brighter than the
+        rim and take a covered pixel for a partly covered one.  On the
+        rim-shaded ``aaa-3`` render (36 views, noise 3) the coverage's sum is
+        then 0.3 % under the exact one (``near`` from :func:`rim_near`), 1.9 %
+        without ``near``.
 
     Returns
     -------
@@ -308,11 +468,12 @@ def coverage(image: np.ndarray, background: np.ndarray, mask: np.ndarray, *, win
     # only the mask's box (widened by the edge band and the window) takes part
     box = _box(m8, 2 + int(window) // 2 + 1)
     if box is not None:
-        cov[box] = _coverage_in(image[box], background[box], m8[box], window)
+        nb = None if near is None else np.asarray(near, dtype=bool)[box]
+        cov[box] = _coverage_in(image[box], background[box], m8[box], window, nb)
     return cov
 
 
-def _coverage_in(image, background, m8, window):
+def _coverage_in(image, background, m8, window, near=None):
     """:func:`coverage` of a crop whose border lies outside the mask's edge band and window."""
     import cv2
 
@@ -340,6 +501,8 @@ def _coverage_in(image, background, m8, window):
     )
     with np.errstate(invalid="ignore", divide="ignore"):
         fg = fg / weight[:, None]
+    if near is not None and near[rows, cols].any():
+        _nearest_colour(img, inner, m8, rows, cols, near[rows, cols], fg, weight)
     b = bg[rows, cols]
     d_img = img[rows, cols] - b
     d_fg = fg - b
@@ -348,12 +511,37 @@ def _coverage_in(image, background, m8, window):
         a = (d_img * d_fg).sum(axis=-1) / den
     # edge pixels with no inside neighbour in the window (or no contrast) keep the binary mask
     ok = (weight > 0) & (den > 1.0)
+    if near is not None:  # a kept rim's own pixels are covered: dim by their shade, not by their coverage
+        ok &= ~(near[rows, cols] & (m8[rows, cols] != 0))
     cov[rows, cols] = np.where(ok, np.clip(a, 0.0, 1.0), m8[rows, cols].astype(np.float32))
     return cov
 
 
+def _nearest_colour(img, inner, m8, rows, cols, sel, fg, weight):
+    """Replace, in place, the specimen's colour ``fg`` (and ``weight``) of the band pixels ``sel`` by the mean of
+    their nearest specimen pixels: the inner ones in the 3 x 3 square, else the mask's (the window's mean stays
+    where neither has one); at the image's border the edge pixels stand for the ones beyond."""
+    idx = np.flatnonzero(sel)
+    h, w_ = inner.shape
+    r = np.clip(rows[idx][:, None] + np.array([-1, -1, -1, 0, 0, 0, 1, 1, 1]), 0, h - 1)
+    c = np.clip(cols[idx][:, None] + np.array([-1, 0, 1, -1, 0, 1, -1, 0, 1]), 0, w_ - 1)
+    colours = img[r, c]  # (N, 9, channels)
+    done = np.zeros(idx.size, dtype=bool)
+    for src in (inner, m8):
+        w8 = (src[r, c] != 0).astype(np.float32)  # (N, 9)
+        w = w8.sum(axis=1)
+        take = ~done & (w > 0)
+        if take.any():
+            fg[idx[take]] = (colours[take] * w8[take, :, None]).sum(axis=1) / w[take, None]
+            weight[idx[take]] = w[take]
+            done |= take
+        if done.all():
+            break
+
+
 def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | None = None,
-               mode: Literal["color", "grey"] = "color", floor: float = 0.0, **clean: Any) -> Silhouette:
+               mode: Literal["color", "grey"] = "color", floor: float = 0.0, noise: float = 0.0,
+               **clean: Any) -> Silhouette:
     """Silhouette of one view by background subtraction.
 
     Parameters
@@ -366,6 +554,10 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     mode : {'color', 'grey'}
     floor : float
         Lowest automatic threshold (e.g. from the background noise).
+    noise : float
+        The background's noise (:func:`background_noise`), grey levels: > 0 keeps the
+        dim rim connected to the silhouette at the automatic threshold (:func:`grow_rim`;
+        a threshold given is used as it is); 0 (default) does not.
     **clean
         Options of :func:`clean_mask`.
 
@@ -377,5 +569,7 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     t = auto_threshold(diff, floor=floor) if threshold is None else float(threshold)
     if t <= 0:
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
-    mask = clean_mask(diff > t, **clean)
-    return Silhouette(mask, coverage(image, background, mask), t, "subtraction")
+    seed = clean_mask(diff > t, **clean)
+    mask = grow_rim(seed, diff, image, background, noise=noise if threshold is None else 0.0,
+                    fill_holes=clean.get("fill_holes", True))
+    return Silhouette(mask, coverage(image, background, mask, near=rim_near(seed, mask)), t, "subtraction")
