@@ -33,3 +33,36 @@ def copy_sample(root, *, calibration=False, views=None):
         doc["views"] = doc["views"][::views]
         (root / "session.json").write_text(json.dumps(doc, indent=2))
     return root
+
+
+def made_once(tmp_path_factory, name, make):
+    """Folder ``name`` under the pytest run's temporary folder, made by ``make(folder)`` once per run.
+
+    Shared by the run's pytest-xdist workers (the first to ask makes it under a file lock, the others wait
+    and read it; as ``tests/_hostile.py`` does for the hostile tests' session).  Read-only for the tests:
+    copy it before changing anything.
+    """
+    import fcntl
+
+    base = tmp_path_factory.getbasetemp()
+    top = base.parent if os.environ.get("PYTEST_XDIST_WORKER") and base.name.startswith("popen-") else base
+    root, done = top / name, top / f"{name}.done"
+    with open(top / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.is_file():
+            shutil.rmtree(root, ignore_errors=True)
+            make(root)
+            done.write_text("made\n")
+    return root
+
+
+def hard_session_24(tmp_path_factory):
+    """The phantom in the hard synthetic mode (shadows, +-10 % exposure, 4:2:0 JPEG), 320 x 240, 24 views,
+    8 intrinsic and 6 turntable board images, no camera and no poses (self-calibrated), seed 6: a scene
+    no default was tuned on.  Made once per run (about 25 s CPU to render) for test_trust.py's correct
+    labels and test_backdrop.py's self-calibrated hard session (every other view)."""
+    from organlab.synthetic import make_session
+
+    return made_once(tmp_path_factory, "hard24", lambda root: make_session(
+        root, hard=True, image_size=(320, 240), n_views=24, n_intrinsic=8, n_turntable=6, n_background=5,
+        include_camera=False, include_poses=False, seed=6))

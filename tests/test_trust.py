@@ -117,17 +117,16 @@ def test_no_angle_is_suggested_for_a_symmetric_specimen():
 
 
 @pytest.mark.slow
-def test_correct_labels_get_no_angle(tmp_path):
+def test_correct_labels_get_no_angle(tmp_path_factory, tmp_path):
     """A scene the suggestion was not set on: the phantom in hard mode at 320 x 240 (4:2:0 JPEG), correct
     labels, self-calibrated.  Every sixth view, looked at as if flagged: none is given another angle; the
     report suggests none either (its flagged views, if any, are JPEG blobs of 8-17 px on ~2 800 px
-    silhouettes, not wrong labels)."""
+    silhouettes, not wrong labels).  The session (24 views, seed 6) is made once per run and shared with
+    test_backdrop.py (tests/_shared_data.hard_session_24)."""
     from organlab.agreement import suggest_angles
-    from organlab.synthetic import make_session
+    from tests._shared_data import hard_session_24
 
-    root = tmp_path / "small"
-    make_session(root, hard=True, image_size=(320, 240), n_views=24, n_intrinsic=8, n_turntable=6, n_background=5,
-                 include_camera=False, include_poses=False, seed=6)
+    root = shutil.copytree(hard_session_24(tmp_path_factory), tmp_path / "small")
     rec = reconstruct(root, voxel_size=2.0)
     angles = [v.angle_deg for v in rec.session.views]
     table = rec.calibration.turntable.camera
