@@ -53,21 +53,31 @@ def _box(a, window):
 
 
 def _window_ncc(ref, warped, valid_ref, window):
-    """NCC of ``window``-px square patches: ``ref (h, w)`` against ``warped (J, S, h, w)`` (NaN = invalid)."""
-    ok = np.isfinite(warped)
-    w = np.where(ok, warped, 0.0).astype(np.float32)
+    """NCC of ``window``-px square patches: ``ref (h, w)`` against ``warped (J, S, h, w)`` (NaN = invalid).
+
+    One ``(h, w)`` slice at a time: its temporaries stay a few hundred kB (whole-stack temporaries were
+    ten arrays the size of ``warped``, hundreds of MB per view on the dino photos, mostly page faults).
+    """
     ref = ref.astype(np.float32)
-    fr = _box(ok.astype(np.float32), window)
     mr, mrr = _box(ref, window), _box(ref * ref, window)
-    mw, mww, mrw = _box(w, window), _box(w * w, window), _box(ref * w, window)
     vr = mrr - mr * mr
-    vw = mww - mw * mw
-    cov = mrw - mr * mw
     vfrac = _box(valid_ref.astype(np.float32), window)
-    good = (fr > 0.999) & (vfrac > 0.999) & (vr > _MIN_STD**2) & (vw > _MIN_STD**2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ncc = cov / np.sqrt(vr * vw)
-    return np.where(good, ncc, np.nan)
+    ref_good = (vfrac > 0.999) & (vr > _MIN_STD**2)
+    out = np.empty(warped.shape, np.float32)
+    for j in range(warped.shape[0]):
+        for s in range(warped.shape[1]):
+            ws = warped[j, s]
+            ok = np.isfinite(ws)
+            w = np.where(ok, ws, 0.0).astype(np.float32)
+            fr = _box(ok.astype(np.float32), window)
+            mw, mww, mrw = _box(w, window), _box(w * w, window), _box(ref * w, window)
+            vw = mww - mw * mw
+            cov = mrw - mr * mw
+            good = (fr > 0.999) & ref_good & (vw > _MIN_STD**2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ncc = cov / np.sqrt(vr * vw)
+            out[j, s] = np.where(good, ncc, np.nan)
+    return out
 
 
 def _top2(ncc):
