@@ -426,8 +426,13 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     # raw vertices 4e-6 mm apart) give the same mesh (tests/test_api.py's snippet against the CLI)
     same = reference is mesh
     mesh = _moved(Mesh(mesh.vertices.astype(np.float32).astype(np.float64), mesh.faces), mesh)
-    reference = mesh if same else _moved(Mesh(reference.vertices.astype(np.float32).astype(np.float64), reference.faces),
-                                         reference)
+    if not same:
+        exact = reference
+        reference = _moved(Mesh(reference.vertices.astype(np.float32).astype(np.float64), reference.faces), exact)
+        if exact in _SURFACES:  # its centroid tree (built for _staircase) serves the rounded copy: one build fewer
+            _SURFACES[reference] = _Surface(reference, tree=_SURFACES[exact].tree)
+    else:
+        reference = mesh
     lo = min(target_mm, MIN_EDGE_VOXELS * voxel_size)
     h = sizing_field(mesh, max_mm=target_mm, min_mm=lo, tol_mm=CHORD_VOXELS * voxel_size)
     if reference is not mesh and len(reference.vertices) != len(mesh.vertices):
