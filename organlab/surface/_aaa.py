@@ -513,6 +513,6 @@ def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     from scipy.spatial import cKDTree
 
     pts = origin + np.argwhere(inside) * vs
-    _, near = cKDTree(c).query(pts)
+    _, near = cKDTree(c).query(pts, workers=-1)  # both cores (1.3 M voxels at 0.25 mm): the same nearest points
     sel = (arc[near] >= s0) & (arc[near] <= s1)
     return float(sel.sum() * vs**3)

@@ -525,7 +525,9 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
     surface, collapses of their shortest edges that improve their stars, and a relaxation of their
     vertices kept only where it improves their stars' smallest angle."""
     cos_bad = math.cos(math.radians(min_angle + 1.0))
-    for r in range(int(rounds) + 10):
+    r = -1
+    while r + 1 < int(rounds) + 10:
+        r += 1
         ang = _face_min_angles(V, F)
         bad = ang < min_angle + 1.0
         if not bad.any():
@@ -544,12 +546,17 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
         alive = np.ones(nf, dtype=bool)
         valive = np.ones(nv, dtype=bool)
         lock = np.zeros(nf, dtype=bool)
-        _flip_edges(V, F, alive, lock, nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm)
+        flips = _flip_edges(V, F, alive, lock, nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm)
         bad = _face_min_angles(V, F) < min_angle + 1.0
         lock = np.zeros(nf, dtype=bool)
-        if _collapse_short(V, F, H, alive, valive, lock, nv, nf, 1.0, 2.0, cos_turn, bad):
+        collapses = _collapse_short(V, F, H, alive, valive, lock, nv, nf, 1.0, 2.0, cos_turn, bad)
+        if collapses:
             V, F, H = _compact(V, F, H, alive, valive, nv, nf)
-        V = _smart_relax(V, F, ref if r < rounds else None, _face_min_angles(V, F) < min_angle + 1.0)
+        W = _smart_relax(V, F, ref if r < rounds else None, _face_min_angles(V, F) < min_angle + 1.0)
+        if r < rounds - 1 and not flips and not collapses and W is V:
+            # nothing changed: the rounds up to the knife-edge flattening would repeat this one exactly
+            r = int(rounds) - 1
+        V = W
     return Mesh(V, F)
 
 
