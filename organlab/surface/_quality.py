@@ -1,4 +1,4 @@
-"""Triangle quality and topology figures of a mesh (numpy only)."""
+"""Triangle quality and topology figures of a mesh (numpy, one numba kernel)."""
 
 from __future__ import annotations
 
