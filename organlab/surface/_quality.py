@@ -10,6 +10,7 @@ from numba import njit
 from ..mesh import Mesh
 
 _CACHE = weakref.WeakKeyDictionary()  # Mesh is immutable: its figures are computed once
+_NULL = weakref.WeakKeyDictionary()  # mesh -> has a face of zero area (from the same pass as the figures)
 
 
 def triangle_angles(mesh):
@@ -187,8 +188,17 @@ def _moved(mesh, like):
     return mesh
 
 
+def has_null_faces(mesh):
+    """True when a face has zero area (its edge vectors' cross product is 0: collinear or repeated corners)."""
+    if mesh not in _NULL:
+        _NULL[mesh] = bool(len(mesh.faces)) and not _face_figures(mesh)[2].all()
+    return _NULL[mesh]
+
+
 def _geometry(mesh):
     ang, ar, area = _face_figures(mesh) if len(mesh.faces) else (np.array([0.0]), np.array([np.inf]), np.zeros(1))
+    if len(mesh.faces):
+        _NULL[mesh] = not area.all()
     return {
         "volume_mm3": mesh.volume,
         "area_mm2": float(area.sum()),

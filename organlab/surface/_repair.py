@@ -28,7 +28,7 @@ from ..errors import OrganlabError
 from ._deviation import _SURFACES, _Surface, _surface, surface_deviation
 from ._folds import fold_edges
 from ._mesh import Mesh
-from ._quality import _face_figures, _moved, boundary_loops, mesh_quality, triangle_angles
+from ._quality import _face_figures, _moved, boundary_loops, has_null_faces, mesh_quality, triangle_angles
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
 from ._voronoi import vertex_normals
 
@@ -163,8 +163,9 @@ def _defects(mesh, speck_mm):
     order = np.lexsort(v.T)
     if (np.diff(v[order], axis=0) == 0).all(axis=1).any():
         out.add("duplicates")
-    t = v[f]
-    if not np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).all():
+    # a zero cross product of the edge vectors; the face figures' area is half its norm, from the same
+    # quality pass (the cross product of (p1 - p0, p0 - p2) is that of (p1 - p0, p2 - p0) negated, exactly)
+    if has_null_faces(mesh):
         out.add("null")
     if q["components"] > 1 or np.linalg.norm(np.ptp(v, axis=0)) < speck_mm:
         out.add("specks")  # the pymeshlab filter decides which of several pieces go
