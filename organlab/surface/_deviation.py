@@ -28,6 +28,9 @@ _SURFACES = weakref.WeakKeyDictionary()
 #: (0.0324 / 0.7063 voxels); the k-d tree's query is most of the time (0.10 s at 4, 0.14 s at 8).
 _K = 6
 
+#: Queries of at least this many points run the k-d tree on all cores (threads cost more below).
+_PARALLEL = 20_000
+
 
 def _tri_closest(p, a, b, c):
     """Closest points of triangles ``abc`` to points ``p`` (all ``(N, 3)``), Ericson's regions, vectorised."""
@@ -125,12 +128,14 @@ def _surface(mesh):
 class _Surface:
     """A mesh prepared for closest-point queries (its centroid tree built once)."""
 
-    def __init__(self, mesh):
+    def __init__(self, mesh, tree=None):
         from scipy.spatial import cKDTree
 
         self.v = np.asarray(mesh.vertices, dtype=np.float64)
         self.f = np.asarray(mesh.faces, dtype=np.int64)
-        self.tree = cKDTree(self.v[self.f].mean(axis=1))
+        # ``tree``: the centroid tree of a mesh with these faces and vertices at most a rounding apart (it
+        # only picks the candidate faces; the distances are this mesh's own)
+        self.tree = cKDTree(self.v[self.f].mean(axis=1)) if tree is None else tree
         self.k = min(_K, len(self.f))
 
     def closest(self, points, k=None):
@@ -139,7 +144,9 @@ class _Surface:
         n = len(points)
         best, dist, face = np.empty((n, 3)), np.empty(n), np.empty(n, dtype=np.int64)
         if n:
-            _, cand = self.tree.query(points, k=self.k if k is None else min(k, len(self.f)))
+            # both cores for the large queries (the remesher's relaxations, the deviation): the same candidates
+            _, cand = self.tree.query(points, k=self.k if k is None else min(k, len(self.f)),
+                                      workers=-1 if n >= _PARALLEL else 1)
             _closest_kernel(points, self.v, self.f, np.ascontiguousarray(cand.reshape(n, -1), dtype=np.int64), best,
                             dist, face)
         return best, dist, face

@@ -409,28 +409,38 @@ def sizing_field(mesh: Mesh, *, max_mm: float, min_mm: float, tol_mm: float, gra
     V, F = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
     n = _vertex_normals(V, F)
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    d = V[e[:, 1]] - V[e[:, 0]]
-    l2 = np.einsum("ij,ij->i", d, d)
     # curvature along the edge from the turn of the normals: |n_b - n_a| / |b - a|; short marching-cubes
     # edges (< 0.2 of the minimum) are left out, their normals are noise over such a distance
-    dn = np.linalg.norm(n[e[:, 1]] - n[e[:, 0]], axis=1)
-    good = l2 > (0.2 * min_mm) ** 2
-    k = np.where(good, dn / np.sqrt(np.maximum(l2, 1e-300)), 0.0)
-    kv = np.zeros(len(V))
-    _scatter_max(kv, e, k)
+    kv, ln = np.zeros(len(V)), np.empty(len(e))
+    _edge_curvature(V, n, e, float((0.2 * min_mm) ** 2), kv, ln)
     with np.errstate(divide="ignore"):
         h = np.sqrt(8.0 * tol_mm / np.maximum(kv, 1e-12))
     h = np.clip(h, min_mm, max_mm)
-    _grade(h, e, np.sqrt(l2), float(grade))
+    _grade(h, e, ln, float(grade))
     return h
 
 
 @njit(cache=True)
-def _scatter_max(out, e, k):
+def _edge_curvature(V, n, e, short2, kv, ln):
+    """Each edge's length into ``ln`` and, at both its ends, the largest ``|n_b - n_a| / |b - a|`` into ``kv``
+    (edges whose squared length is not above ``short2`` count 0).
+
+    The numpy expressions it replaced, in the same order (the same values, without the six ``(3F, 3)``
+    temporaries: 0.25 mm sample, 2.8 M edges, 320 MB less at the finishing's peak).
+    """
     for i in range(e.shape[0]):
-        for j in range(2):
-            if k[i] > out[e[i, j]]:
-                out[e[i, j]] = k[i]
+        a, b = e[i, 0], e[i, 1]
+        dx, dy, dz = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
+        l2 = (dx * dx + dz * dz) + dy * dy  # as numpy's einsum sums three terms
+        ln[i] = math.sqrt(l2)
+        k = 0.0
+        if l2 > short2:
+            nx, ny, nz = n[b, 0] - n[a, 0], n[b, 1] - n[a, 1], n[b, 2] - n[a, 2]
+            k = math.sqrt(nx * nx + ny * ny + nz * nz) / math.sqrt(max(l2, 1e-300))
+        if k > kv[a]:
+            kv[a] = k
+        if k > kv[b]:
+            kv[b] = k
 
 
 @njit(cache=True)
@@ -525,7 +535,9 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
     surface, collapses of their shortest edges that improve their stars, and a relaxation of their
     vertices kept only where it improves their stars' smallest angle."""
     cos_bad = math.cos(math.radians(min_angle + 1.0))
-    for r in range(int(rounds) + 10):
+    r = -1
+    while r + 1 < int(rounds) + 10:
+        r += 1
         ang = _face_min_angles(V, F)
         bad = ang < min_angle + 1.0
         if not bad.any():
@@ -544,12 +556,17 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
         alive = np.ones(nf, dtype=bool)
         valive = np.ones(nv, dtype=bool)
         lock = np.zeros(nf, dtype=bool)
-        _flip_edges(V, F, alive, lock, nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm)
+        flips = _flip_edges(V, F, alive, lock, nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm)
         bad = _face_min_angles(V, F) < min_angle + 1.0
         lock = np.zeros(nf, dtype=bool)
-        if _collapse_short(V, F, H, alive, valive, lock, nv, nf, 1.0, 2.0, cos_turn, bad):
+        collapses = _collapse_short(V, F, H, alive, valive, lock, nv, nf, 1.0, 2.0, cos_turn, bad)
+        if collapses:
             V, F, H = _compact(V, F, H, alive, valive, nv, nf)
-        V = _smart_relax(V, F, ref if r < rounds else None, _face_min_angles(V, F) < min_angle + 1.0)
+        W = _smart_relax(V, F, ref if r < rounds else None, _face_min_angles(V, F) < min_angle + 1.0)
+        if r < rounds - 1 and not flips and not collapses and W is V:
+            # nothing changed: the rounds up to the knife-edge flattening would repeat this one exactly
+            r = int(rounds) - 1
+        V = W
     return Mesh(V, F)
 
 
