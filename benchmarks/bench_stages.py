@@ -171,14 +171,16 @@ def print_steps(commands, repeat):
     """Each step's wall s / CPU s / peak MB at each voxel size, and their growth per halving."""
     vss = list(commands)
     print(f"\nwhole default command (organlab reconstruct, true cameras, a new process each; best of "
-          f"{repeat} by CPU): per step wall s / CPU s / peak MB (VmHWM during the step)")
+          f"{repeat} by CPU): per step wall s / CPU s / peak MB (VmHWM during the step); a step marked * ran in a "
+          f"second thread beside another step (its wall overlapped; its CPU is its thread's, taken off the other's)")
     names = list(dict.fromkeys(k for c in commands.values() for k in c["steps"]))
     print(f"{'step':<18}" + "".join(f"{f'{vs:g} mm':>26}" for vs in vss))
     for n in names:
         cells = []
         for vs in vss:
             r = commands[vs]["steps"].get(n)
-            cells.append(" " * 26 if r is None else f"{r['wall']:8.2f} {r['cpu']:7.2f} {r['peak_mb']:8.0f}  ")
+            cells.append(" " * 26 if r is None else f"{r['wall']:8.2f} {r['cpu']:7.2f} {r['peak_mb']:8.0f}"
+                         + ("* " if r.get("beside") else "  "))
         print(f"{n:<18}" + "".join(cells))
     print(f"{'whole process':<18}" + "".join(f"{c['process_wall']:8.2f} {c['process_cpu']:7.2f} "
                                              f"{c['process_peak_mb']:8.0f}  " for c in commands.values()))

@@ -177,8 +177,10 @@ def test_hard_session_self_calibrated(tmp_path_factory, tmp_path):
     (root / "session.json").write_text(json.dumps(doc))
     plain = reconstruct(root, voxel_size=2.0).report["mesh_volume_error_pct"]
     print("plain", plain)
-    # plain subtraction takes the exposure change and the cast shadow for specimen: measured -81.2 % (seed 4: -78.6 %)
-    assert plain < -20.0
+    # plain subtraction: the exposure change and the cast shadow move its threshold. Measured -3.57 % since the
+    # rim step (silhouette.grow_rim) keeps the dim rims the higher threshold cut (before it: -81.2 %, seed 4
+    # -78.6 %); keying stays far closer to the truth (+0.49 % above)
+    assert plain < -2.0 and abs(plain) > 4 * abs(err)
 
 
 @pytest.mark.slow
