@@ -8,6 +8,8 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
 * ``drift_aaa7`` / ``drift_dented``: the table lost steps, the true angles drift
   linearly to +3 degrees over the turn plus 0.3 degrees of jitter per stop;
 * ``driftb_dented``: the same with another render (seed) and another drift;
+* ``drift_aaa11`` / ``ok_aaa11``: another drift (seed 25) on ``aaa-11`` (its outline shows its angles, its
+  hull is near its volume), and the same render with the true angles;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
 * ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
@@ -59,6 +61,10 @@ def scenes(n=36, size=(640, 480)):
         "drift_dented": dict(base, seed=6, specimen="dented", true_angles_deg=drift_angles(n, 8)),
         # another render and another drift, for the defaults chosen on the one above
         "driftb_dented": dict(base, seed=16, specimen="dented", true_angles_deg=drift_angles(n, 18)),
+        # a drift on a specimen whose outline shows its angles (aaa-11: not rotation-symmetric) and whose hull is
+        # near its volume (no hidden concavity, unlike dented); another render and drift; and its correct twin
+        "drift_aaa11": dict(base, seed=21, specimen="aaa-11", true_angles_deg=drift_angles(n, 25)),
+        "ok_aaa11": dict(base, seed=21, specimen="aaa-11"),
     }
 
 
