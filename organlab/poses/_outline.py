@@ -68,8 +68,8 @@ def edge_coverage(image, background, mask, *, radius: int | None = None, tau: fl
     tau = TAU if tau is None else float(tau)
     if radius < 1 or not tau > 0:
         raise ValueError(f"need radius >= 1 px and tau > 0 grey levels, got {radius} and {tau}")
-    img = np.asarray(image, np.float64)
-    bg = np.asarray(background, np.float64)
+    img = np.asarray(image)  # converted to float64 below, on the silhouette's box only (issue 24: the whole
+    bg = np.asarray(background)  # 640 x 480 frame's conversion was 40 % of this function's time)
     if img.ndim == 2:
         img = img[..., None]
     if bg.ndim == 2:
@@ -80,14 +80,15 @@ def edge_coverage(image, background, mask, *, radius: int | None = None, tau: fl
     if m8.shape != img.shape[:2]:
         raise ValueError(f"mask {m8.shape} and image {img.shape[:2]} differ in size")
     out = np.zeros(m8.shape, np.float32)
-    rows, cols = np.nonzero(m8)
+    rows, cols = np.flatnonzero(m8.any(axis=1)), np.flatnonzero(m8.any(axis=0))  # the box (np.nonzero: 5 ms a frame)
     if rows.size == 0:
         return out
     pad = int(radius) + 2
     h, w = m8.shape
     r0, r1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, h)
     c0, c1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, w)
-    out[r0:r1, c0:c1] = _edge_coverage(img[r0:r1, c0:c1], bg[r0:r1, c0:c1], m8[r0:r1, c0:c1], int(radius), float(tau))
+    out[r0:r1, c0:c1] = _edge_coverage(np.asarray(img[r0:r1, c0:c1], np.float64), np.asarray(bg[r0:r1, c0:c1], np.float64),
+                                       m8[r0:r1, c0:c1], int(radius), float(tau))
     return out
 
 
