@@ -26,6 +26,7 @@ _PEAK = 0.1  # NCC: how far below the best score the peak's front is taken
 _MIN_STD = 2.0  # grey levels: windows flatter than this (either image) give no evidence
 _NEIGHBOUR_DEG = (12.0, 40.0)  # angles between a view and the views it is compared with
 _MAX_NEIGHBOURS = 4
+_CHUNK = 16  # depth steps per box filter call (its channels)
 _CONFIRM = 0.5  # NCC: where three or more pairs are valid at the best depth, the third best must match too
 
 
@@ -42,49 +43,56 @@ def _neighbours(cameras, centre):
     return out
 
 
-def _box(a, window):
-    """Mean over ``window`` x ``window`` px of every ``(h, w)`` slice of ``a`` (zero outside)."""
-    a = np.ascontiguousarray(a, np.float32)
-    flat = a.reshape((-1,) + a.shape[-2:])
-    out = np.empty_like(flat)
-    for k in range(len(flat)):
-        out[k] = cv2.boxFilter(flat[k], -1, (window, window), borderType=cv2.BORDER_CONSTANT)
-    return out.reshape(a.shape)
-
-
 def _window_ncc(ref, warped, valid_ref, window):
     """NCC of ``window``-px square patches: ``ref (h, w)`` against ``warped (J, S, h, w)`` (NaN = invalid).
 
-    One ``(h, w)`` slice at a time: its temporaries stay a few hundred kB (whole-stack temporaries were
-    ten arrays the size of ``warped``, hundreds of MB per view on the dino photos, mostly page faults).
+    ``_CHUNK`` depth steps at a time, as the channels of one box filter (each channel's sums are its
+    own, so the figures are those of one slice at a time): temporaries of a few MB (whole-stack ones
+    were ten arrays the size of ``warped``, hundreds of MB per view on the dino photos), and one
+    filter call per chunk instead of per slice.
     """
+    k = (window, window)
+
+    def box(a):
+        return cv2.boxFilter(a, -1, k, borderType=cv2.BORDER_CONSTANT).reshape(a.shape)
+
     ref = ref.astype(np.float32)
-    mr, mrr = _box(ref, window), _box(ref * ref, window)
+    mr, mrr = box(ref), box(ref * ref)
     vr = mrr - mr * mr
-    vfrac = _box(valid_ref.astype(np.float32), window)
-    ref_good = (vfrac > 0.999) & (vr > _MIN_STD**2)
+    vfrac = box(valid_ref.astype(np.float32))
+    ref_good = ((vfrac > 0.999) & (vr > _MIN_STD**2))[..., None]
+    ref3, mr3, vr3 = ref[..., None], mr[..., None], vr[..., None]
+    J, S = warped.shape[:2]
     out = np.empty(warped.shape, np.float32)
-    for j in range(warped.shape[0]):
-        for s in range(warped.shape[1]):
-            ws = warped[j, s]
+    for j in range(J):
+        for s0 in range(0, S, _CHUNK):
+            ws = np.ascontiguousarray(warped[j, s0:s0 + _CHUNK].transpose(1, 2, 0))  # (h, w, c)
             ok = np.isfinite(ws)
-            w = np.where(ok, ws, 0.0).astype(np.float32)
-            fr = _box(ok.astype(np.float32), window)
-            mw, mww, mrw = _box(w, window), _box(w * w, window), _box(ref * w, window)
+            w = np.where(ok, ws, np.float32(0.0))
+            fr = box(ok.astype(np.float32))
+            mw, mww, mrw = box(w), box(w * w), box(ref3 * w)
             vw = mww - mw * mw
-            cov = mrw - mr * mw
+            cov = mrw - mr3 * mw
             good = (fr > 0.999) & ref_good & (vw > _MIN_STD**2)
             with np.errstate(invalid="ignore", divide="ignore"):
-                ncc = cov / np.sqrt(vr * vw)
-            out[j, s] = np.where(good, ncc, np.nan)
+                ncc = cov / np.sqrt(vr3 * vw)
+            out[j, s0:s0 + _CHUNK] = np.where(good, ncc, np.float32(np.nan)).transpose(2, 0, 1)
     return out
 
 
 def _top2(ncc):
-    """Mean of the two best view pairs' NCC, ``(S, h, w)``; NaN where fewer than two pairs are valid."""
-    a = np.where(np.isfinite(ncc), ncc, -np.inf)
-    a = -np.sort(-a, axis=0)
-    s = 0.5 * (a[0] + a[1])
+    """Mean of the two best view pairs' NCC, ``(S, h, w)``; NaN where fewer than two pairs are valid.
+
+    The two largest by a running max / min over the pairs (the values a full sort along the pairs
+    would put first, without sorting the whole ``(J, S, h, w)`` stack).
+    """
+    m1 = np.full(ncc.shape[1:], -np.inf, np.float32)
+    m2 = m1.copy()
+    for x in ncc:
+        x = np.where(np.isfinite(x), x, np.float32(-np.inf))
+        np.maximum(m2, np.minimum(m1, x), out=m2)
+        np.maximum(m1, x, out=m1)
+    s = 0.5 * (m1 + m2)
     return np.where(np.isfinite(s), s, np.nan)
 
 
