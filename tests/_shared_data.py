@@ -66,3 +66,49 @@ def hard_session_24(tmp_path_factory):
     return made_once(tmp_path_factory, "hard24", lambda root: make_session(
         root, hard=True, image_size=(320, 240), n_views=24, n_intrinsic=8, n_turntable=6, n_background=5,
         include_camera=False, include_poses=False, seed=6))
+
+
+def sample_calibrated(tmp_path_factory):
+    """A copy of the sample (all 36 views) with the ``calibration.json`` its own boards give, computed
+    once per run (about 6 s CPU) for test_trust.py's broken copies and test_sweep.py's runs, which need
+    a calibration only as set-up; read-only (copy it before writing)."""
+    from organlab.calibration import calibrate
+    from organlab.session import load_session
+
+    def make(root):
+        copy_sample(root)
+        calibrate(load_session(root)).save(root / "calibration.json")
+
+    return made_once(tmp_path_factory, "sample_calibrated", make)
+
+
+#: The pose tests' scene settings (test_poses.py, test_poses_faces.py): 24 views of 320 x 240 px,
+#: supersample 2, noise 1 grey level, intrinsics given, turntable calibrated from 8 board images.
+POSE_SCENE = dict(image_size=(320, 240), n_views=24, n_intrinsic=0, n_turntable=8, n_background=5, supersample=2,
+                  board_supersample=3, noise_sigma=1.0, include_camera=True, include_poses=False)
+#: The camera bump after the board images (0.7 degrees, 1.4 mm)
+POSE_BUMP = {"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)}
+
+
+def bumped_session_24(tmp_path_factory):
+    """``aaa-7`` (seed 3) under the camera bump ``POSE_BUMP``, ``POSE_SCENE`` settings (24 views), rendered
+    once per run for test_poses.py's bumped camera and (every other view: :func:`every_other_view`)
+    test_poses_faces.py's viewer; read-only."""
+    from organlab.synthetic import make_session
+
+    return made_once(tmp_path_factory, "bump24", lambda root: make_session(
+        root, **POSE_SCENE, seed=3, specimen="aaa-7", camera_bump=POSE_BUMP))
+
+
+def every_other_view(src, dest):
+    """A writable copy of the synthetic session ``src`` at ``dest`` with views 0, 2, 4, ... only (in
+    ``session.json`` and ``truth.json``, its perturbation's angles too); the image files stay (the unused ones are not read)."""
+    shutil.copytree(src, dest)
+    for name in ("session.json", "truth.json"):
+        doc = json.loads((dest / name).read_text())
+        doc["views"] = doc["views"][::2]
+        for key in ("commanded_angles_deg", "true_angles_deg"):  # truth.json's perturbation, one per view
+            if key in doc.get("perturbation", {}):
+                doc["perturbation"][key] = doc["perturbation"][key][::2]
+        (dest / name).write_text(json.dumps(doc, indent=2))
+    return dest

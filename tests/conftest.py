@@ -54,12 +54,14 @@ def small_session(tmp_path_factory):
 # Approximate seconds per file on a quiet 2-core machine (the closing note's slowest tests, summed per
 # file), and where issue 24's helper measured it, the file's CPU seconds alone (user + sys, kernels
 # included, 2026-12-03 under load: test_notebooks 218, test_photo 123, test_trust 101; test_pipeline and
-# test_backdrop about 42 and 28 once their shared sessions are made); the files not named follow, most
-# tests first.  Refresh from `pytest --durations=0` when they move.
+# test_backdrop about 42 and 28 once their shared sessions are made; test_poses + test_poses_faces 88 in one
+# run, about 4/5 of it test_poses, now that they share the bumped render, load 9-16); the files not named
+# follow, most tests first.  Refresh from `pytest --durations=0` when they move.
 FILE_SECONDS = {
     "test_notebooks.py": 220, "test_photo.py": 120, "test_trust.py": 100, "test_sweep.py": 60,
     "test_hostile_results.py": 45, "test_pipeline.py": 40, "test_coloring_robust.py": 40, "test_coloring.py": 35,
-    "test_backdrop.py": 30, "test_capture.py": 30, "test_camera_formats.py": 30, "test_real_dino.py": 30,
+    "test_poses.py": 70, "test_backdrop.py": 30, "test_capture.py": 30, "test_camera_formats.py": 30,
+    "test_real_dino.py": 30, "test_poses_faces.py": 20,
     "test_benchmarks.py": 25, "test_notebook_jupyterlab.py": 25, "test_agreement_limits.py": 25,
 }
 

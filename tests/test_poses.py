@@ -15,6 +15,7 @@ Each refined pose is scored against the one that rendered the images
 """
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -30,19 +31,22 @@ from organlab.silhouette import SilhouetteModel
 from organlab.surface import mesh_from_field
 from organlab.synthetic import Cylinder, make_session
 
-from tests._shared_data import DINO, needs_dino
+from tests._shared_data import DINO, POSE_BUMP, POSE_SCENE, bumped_session_24, needs_dino
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
 
-SMALL = dict(image_size=(320, 240), n_views=24, n_intrinsic=0, n_turntable=8, n_background=5, supersample=2,
-             board_supersample=3, noise_sigma=1.0, include_camera=True, include_poses=False)
-BUMP = {"rotation_deg": (0.3, 0.6, 0.2), "translation_mm": (1.2, -0.6, 0.4)}
+SMALL = POSE_SCENE  # tests/_shared_data.py: shared with test_poses_faces.py
+BUMP = POSE_BUMP
 SLIP = {"view": 12, "translation_mm": (1.2, -0.9), "rotation_deg": 0.0}
 
 
-def _scene(tmp_path_factory, name, **kw):
-    out = tmp_path_factory.mktemp(name)
-    make_session(out, **SMALL, **kw)
+def _scene(tmp_path_factory, name, *, made=None, **kw):
+    """The scene ``make_session(**SMALL, **kw)``, or a copy of the shared session folder ``made`` when given."""
+    if made is None:
+        out = tmp_path_factory.mktemp(name)
+        make_session(out, **SMALL, **kw)
+    else:
+        out = shutil.copytree(made, tmp_path_factory.mktemp(name) / "session")
     s = load_session(out)
     cal, _ = calibration_for(s)
     model = SilhouetteModel.from_session(s)
@@ -79,7 +83,8 @@ def test_off_and_bad_input():
 
 @pytest.mark.slow
 def test_bumped_camera_is_corrected(tmp_path_factory):
-    s, cal, sils, truth, true_cams, kw = _scene(tmp_path_factory, "bump", seed=3, specimen="aaa-7", camera_bump=BUMP)
+    # aaa-7, seed 3, bumped by BUMP: rendered once per run, shared with test_poses_faces.py's viewer test
+    s, cal, sils, truth, true_cams, kw = _scene(tmp_path_factory, "bump", made=bumped_session_24(tmp_path_factory))
     r = refine_poses(s, cal, sils, mode="auto", **kw)
     assert r.flagged and r.accepted, r.reason
     before = max(_rot_err_deg(c.R, t.R) for c, t in zip(cal.cameras(s), true_cams))

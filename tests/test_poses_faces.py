@@ -17,7 +17,8 @@ from organlab.session import load_session
 from organlab.silhouette import SilhouetteModel
 from organlab.synthetic import make_session
 
-from tests.test_poses import BUMP, SMALL
+from tests._shared_data import bumped_session_24, every_other_view
+from tests.test_poses import SMALL
 
 
 def _drift(n, seed, total=3.0, jitter=0.3):
@@ -90,11 +91,11 @@ def test_drifting_table_recovered_with_and_without_the_audit(tmp_path):
 
 
 @pytest.mark.slow
-def test_viewer_shows_the_frustums_before_and_after(tmp_path):
+def test_viewer_shows_the_frustums_before_and_after(tmp_path_factory, tmp_path):
     from organlab.viewer import SessionViewer
 
-    out = tmp_path / "bump"
-    make_session(out, **dict(SMALL, n_views=12), seed=3, specimen="aaa-7", camera_bump=BUMP)
+    # the bumped aaa-7 (seed 3) of test_poses.py, rendered once per run (24 views): every other view, 12
+    out = every_other_view(bumped_session_24(tmp_path_factory), tmp_path / "bump")
     truth = json.loads((out / "truth.json").read_text())
     v = SessionViewer(out, voxel_size=3.0, port=0, stream=False)
     try:

@@ -21,8 +21,9 @@ import pytest
 
 import organlab as ol
 import organlab.batch as ob
-from organlab.calibration import calibration_for
+from organlab.calibration import Calibration
 from organlab.session import load_session
+from tests._shared_data import sample_calibrated
 
 pytest.importorskip("distributed")
 pd = pytest.importorskip("pandas")
@@ -41,10 +42,12 @@ def session():
 
 
 @pytest.fixture(scope="module")
-def calibration(session):
+def calibration(session, tmp_path_factory):
     # one calibration for every run of the module: OpenCV's fit differs in the last digits from one call to the
-    # next (measured: two calibrate() calls in one process give different K), and these runs compare bit for bit
-    return calibration_for(session)[0]
+    # next (measured: two calibrate() calls in one process give different K), and these runs compare bit for bit.
+    # Set-up only: the sample's calibration computed once per run, shared with test_trust.py (each sweep task
+    # checks it against the session, as calibration_for does any calibration it is given)
+    return Calibration.load(sample_calibrated(tmp_path_factory) / "calibration.json", image_size=session.image_size)
 
 
 @pytest.fixture(scope="module")

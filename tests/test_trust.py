@@ -19,18 +19,14 @@ from organlab.cli import main
 from organlab.errors import OrganlabError, SessionError
 from organlab.pipeline import reconstruct, write_outputs
 from organlab.preflight import bytes_per_voxel, check_grid_memory, check_output_dir, parse_memory
-from tests._shared_data import SAMPLE, copy_sample
+from tests._shared_data import SAMPLE, sample_calibrated
 
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
-    """A copy of the sample session with its calibration.json (computed once)."""
-    root = tmp_path_factory.mktemp("trust") / "sample"
-    copy_sample(root)
-    from organlab.calibration import calibrate
-
-    calibrate(load_session(root)).save(root / "calibration.json")
-    return root
+    """A copy of the sample session with its calibration.json (computed once per run, shared with
+    test_sweep.py: tests/_shared_data.sample_calibrated)."""
+    return shutil.copytree(sample_calibrated(tmp_path_factory), tmp_path_factory.mktemp("trust") / "sample")
 
 
 def _variant(calibrated, dest, edit):
