@@ -140,6 +140,10 @@ def test_grow_rim_arguments():
         grow_rim(mask, diff[:4], noise=1.0)
     with pytest.raises(ValueError, match="fraction"):
         grow_rim(mask, diff, noise=1.0, fraction=0.0)
+    frame = np.zeros((5, 5, 3), np.uint8)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="rim_depth"):
+            SilhouetteModel([frame], [frame], rim_depth=bad)
 
 
 def test_keyed_views_are_not_changed(even_scene):

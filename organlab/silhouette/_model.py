@@ -125,6 +125,8 @@ class SilhouetteModel:
         self.background = None
         self.floor = 0.0
         self.noise = 0.0
+        if isinstance(rim_depth, bool) or not isinstance(rim_depth, (int, np.integer)) or rim_depth < 0:
+            raise ValueError(f"rim_depth must be an integer >= 0 (pixels; 0 turns the rim step off), got {rim_depth!r}")
         self.rim_depth = int(rim_depth)
         self.differences = [None] * n
         self.gains = [1.0] * n
