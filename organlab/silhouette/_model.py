@@ -25,17 +25,7 @@ from ..masks import Silhouette
 from ..session import Session, load_session
 from ._joint import MIN_VIEWS, joint_masks
 from ._keying import KeyInfo, auto_key_threshold, clean_scaled, estimate_backdrop, key_distance
-from ._subtract import (
-    RIM_DEPTH,
-    auto_threshold,
-    background_model,
-    background_noise,
-    clean_mask,
-    coverage,
-    difference,
-    grow_rim,
-    rim_near,
-)
+from ._subtract import RIM_DEPTH, _rim_mask, auto_threshold, background_model, background_noise, coverage, difference
 
 __all__ = ["SilhouetteModel", "silhouettes", "session_silhouettes"]
 
@@ -314,14 +304,13 @@ class SilhouetteModel:
         if self.keyed:
             return self._keyed(i, t, clean)
         auto = auto or (self._auto[i] is not None and t == self._auto[i])  # the automatic one, given back
-        seed = clean_mask(self.differences[i] > t, **clean)
-        mask = grow_rim(seed, self.differences[i], self.images[i], self.background, noise=self.noise,
-                        depth=self.rim_depth if auto else 0, fill_holes=clean.get("fill_holes", True))
+        mask, near = _rim_mask(self.differences[i], self.images[i], self.background, t, clean, noise=self.noise,
+                               depth=self.rim_depth if auto else 0)
         if not mask.any():
             raise SessionError(
                 f"{self.names[i]}: the silhouette is empty; lower --threshold or check the background frames"
             )
-        self._rim[i] = rim_near(seed, mask)
+        self._rim[i] = near
         cov = coverage(self.images[i], self.background, mask, near=self._rim[i])
         return Silhouette(mask, cov, t, "subtraction")
 

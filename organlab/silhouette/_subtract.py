@@ -411,6 +411,15 @@ def rim_near(seed: np.ndarray, grown: np.ndarray, *, reach: int = RIM_DEPTH) -> 
     return near
 
 
+def _rim_mask(diff, image, background, t, clean, *, noise, depth=RIM_DEPTH):
+    """The silhouette at threshold ``t`` (:func:`clean_mask` with ``clean``'s options), its dim rim kept
+    (:func:`grow_rim`, ``depth`` 0 or ``noise`` 0: none), and where that rim was kept (:func:`rim_near`,
+    :func:`coverage`'s ``near``): ``(mask, near)``."""
+    seed = clean_mask(diff > t, **clean)
+    mask = grow_rim(seed, diff, image, background, noise=noise, depth=depth, fill_holes=clean.get("fill_holes", True))
+    return mask, rim_near(seed, mask)
+
+
 def _shadow_like(img, bg, tol):
     """(N,) bool: colours ``img`` (N, 3) that are a darker copy of the background's ``bg`` (N, 3), within
     ``tol`` grey levels (the colour distance of the residual after the best scaling of the background, as
@@ -569,7 +578,5 @@ def silhouette(image: np.ndarray, background: np.ndarray, *, threshold: float | 
     t = auto_threshold(diff, floor=floor) if threshold is None else float(threshold)
     if t <= 0:
         raise ValueError(f"threshold must be > 0 grey levels, got {t}")
-    seed = clean_mask(diff > t, **clean)
-    mask = grow_rim(seed, diff, image, background, noise=noise if threshold is None else 0.0,
-                    fill_holes=clean.get("fill_holes", True))
-    return Silhouette(mask, coverage(image, background, mask, near=rim_near(seed, mask)), t, "subtraction")
+    mask, near = _rim_mask(diff, image, background, t, clean, noise=noise if threshold is None else 0.0)
+    return Silhouette(mask, coverage(image, background, mask, near=near), t, "subtraction")

@@ -535,9 +535,8 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
     surface, collapses of their shortest edges that improve their stars, and a relaxation of their
     vertices kept only where it improves their stars' smallest angle."""
     cos_bad = math.cos(math.radians(min_angle + 1.0))
-    r = -1
-    while r + 1 < int(rounds) + 10:
-        r += 1
+    r = 0
+    while r < int(rounds) + 10:
         ang = _face_min_angles(V, F)
         bad = ang < min_angle + 1.0
         if not bad.any():
@@ -567,6 +566,7 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
             # nothing changed: the rounds up to the knife-edge flattening would repeat this one exactly
             r = int(rounds) - 1
         V = W
+        r += 1
     return Mesh(V, F)
 
 

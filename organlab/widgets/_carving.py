@@ -91,7 +91,7 @@ class CarvingTuner:
                     and color_threshold > 0)):
             raise OrganlabError(f"color_threshold must be a number > 0, 'auto' or None, got {color_threshold!r}")
         if method not in METHODS[1:]:  # the engine's colouring methods (all but 'hull')
-            raise OrganlabError(f"method must be 'coloring', 'space_carving' or 'photo', got {method!r}")
+            raise OrganlabError(f"method must be one of {', '.join(map(repr, METHODS[1:]))}, got {method!r}")
         self.color_threshold = color_threshold
         self.method = method
         self.reference_volume = reference_volume
