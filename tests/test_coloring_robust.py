@@ -228,26 +228,11 @@ def test_dino_backdrop_keying_matches_the_authors_masks(dino):
 @pytest.mark.slow
 def test_dino_as_a_backdrop_session(dino, tmp_path):
     """The photos as a session with a border backdrop (no masks, no frames), through organlab.pipeline at 1 mm."""
-    import shutil
-
-    from organlab.datasets import middlebury_silhouettes
+    from organlab.datasets import middlebury_silhouettes, write_middlebury_session
     from organlab.pipeline import reconstruct
-    from organlab.session import write_json
 
     data, imgs, cams, masks = dino
-    good = [n for n, g in zip(data.names, data.good) if g]
-    (tmp_path / "views").mkdir()
-    for n in good:
-        shutil.copy(DATA / n, tmp_path / "views" / n)
-    K = cams[0].K
-    write_json(tmp_path / "session.json", {
-        "format": "organlab.session/1", "units": "mm", "image_size": [640, 480],
-        "camera": {"K": K.tolist(), "dist": [0, 0, 0, 0, 0]},
-        "views": [{"image": f"views/{n}", "angle_deg": 0.0, "pose": {"R": c.R.tolist(), "t": c.t.tolist()}}
-                  for n, c in zip(good, cams)],
-        "roi": {"min": (data.bbox[0] - 4.0).tolist(), "max": (data.bbox[1] + 4.0).tolist()},
-        "backdrop": {"color": "border"},
-    })
+    assert write_middlebury_session(data, DATA, tmp_path) == list(np.flatnonzero(data.good))  # the views of `cams`
     rec = reconstruct(tmp_path, voxel_size=1.0)
     assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
     # the marching-cubes surface: this measures the silhouettes (the finished, remeshed surface rounds the
