@@ -43,6 +43,9 @@ RIM_LOW = 3.0
 RIM_FRACTION = 0.5
 #: grow_rim: the rim is grown at most this many pixels out from the silhouette.
 RIM_DEPTH = 10
+#: grow_rim: where it grew, one last ring of pixels showing at least this fraction of their silhouette
+#: neighbours' largest difference (the outline's pixels: partly covered, and shaded more than the pixels inside).
+RIM_OUTER = 0.35
 
 
 def _stack(frames):
@@ -288,7 +291,7 @@ def _fill_holes(out):
 
 def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None, background: np.ndarray | None = None,
              *, noise: float, low: float = RIM_LOW, fraction: float = RIM_FRACTION, depth: int = RIM_DEPTH,
-             fill_holes: bool = True) -> np.ndarray:
+             fill_holes: bool = True, outer: float = RIM_OUTER) -> np.ndarray:
     """Keep the dim rim of a silhouette: the pixels connected to it that differ clearly from the background.
 
     Hysteresis thresholding: the silhouette (pixels above the view's threshold, cleaned) is the seed;
@@ -349,6 +352,8 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
         raise ValueError(f"mask {m.shape} and diff {d_all.shape} differ in size")
     if not 0 < float(fraction) <= 1:
         raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    if not 0 < float(outer) <= float(fraction):
+        raise ValueError(f"outer must be in (0, fraction], got {outer} (fraction {fraction})")
     out = m.copy()
     if not (float(noise) > 0 and int(depth) > 0 and m.any()):
         return out
@@ -372,7 +377,8 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
     dm = np.where(m_s != 0, d_s, 0.0).astype(np.float32)
     frac = np.float32(fraction)
     grew = False
-    for _ in range(int(depth)):
+    rings = 0
+    while rings < int(depth):
         front = c_s & cv2.dilate(m_s, k).astype(bool)
         if not front.any():
             break
@@ -381,13 +387,30 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
         if not add.any():
             break
         grew = True
+        rings += 1
         m_s[add] = 1
         dm[add] = d_s[add]
         c_s &= ~add
+    if grew and rings < int(depth) and float(outer) < float(fraction):
+        _outer_ring(m_s, d_s, c_s, dm, m[box][sub], np.float32(outer), int(depth))
     if grew:
         grown = mb.astype(bool)
         out[box] = _fill_holes(grown) if fill_holes else grown
     return out
+
+
+def _outer_ring(m_s, d_s, c_s, dm, seed, frac, depth):
+    """One more ring, in place, where the growth added pixels (within ``depth`` of them): the candidates
+    next to the grown mask whose difference is at least ``frac`` of the largest of their mask neighbours'."""
+    import cv2
+
+    k = np.ones((3, 3), np.uint8)
+    added = (m_s != 0) & ~seed
+    reach = 2 * depth + 1
+    near = cv2.dilate(added.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (reach, reach))).astype(bool)
+    front = c_s & near & cv2.dilate(m_s, k).astype(bool)
+    add = front & (d_s >= frac * cv2.dilate(dm, k))
+    m_s[add] = 1
 
 
 def rim_near(seed: np.ndarray, grown: np.ndarray, *, reach: int = RIM_DEPTH) -> np.ndarray | None:
