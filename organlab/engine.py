@@ -1322,11 +1322,12 @@ class LiveHull:
         return sil, self.add(sil.mask, camera)
 
     @staticmethod
-    def by_subtraction(background: np.ndarray, *, threshold: float | None = None,
-                       floor: float = 0.0) -> Callable[[np.ndarray], Silhouette]:
+    def by_subtraction(background: np.ndarray, *, threshold: float | None = None, floor: float = 0.0,
+                       noise: float = 0.0) -> Callable[[np.ndarray], Silhouette]:
         """The silhouette function of background subtraction against a model of the empty scene
-        (:func:`organlab.silhouette.silhouette`)."""
-        return lambda image: silhouette(image, background, threshold=threshold, floor=floor)
+        (:func:`organlab.silhouette.silhouette`; ``noise``, the frames' :func:`organlab.silhouette.background_noise`
+        > 0: each view keeps its dim rim at the automatic threshold, as ``organlab reconstruct`` does)."""
+        return lambda image: silhouette(image, background, threshold=threshold, floor=floor, noise=noise)
 
     @classmethod
     def for_capture(cls, session: Session | str | Path, *, voxel_size: float = 2.0, threshold: float | None = None,

@@ -210,7 +210,7 @@ class LiveView:
             self._carver = LiveHull(grid, tolerance=tolerance)
         self.frame(*grid.bounds)
 
-    def capture_listener(self, camera0, *, background=None, threshold=None, floor=0.0):
+    def capture_listener(self, camera0, *, background=None, threshold=None, floor=0.0, noise=0.0):
         """A callback for ``organlab.capture``'s ``on_view(index, angle_deg, image)``.
 
         Each captured image is shown at its camera ``camera0.at_table_angle(angle)``;
@@ -229,12 +229,17 @@ class LiveView:
         floor : float
             Lowest automatic threshold, grey levels (e.g. 5 x the background
             noise, as :class:`organlab.silhouette.SilhouetteModel` uses).
+        noise : float
+            The frames' :func:`organlab.silhouette.background_noise`, grey levels:
+            > 0 keeps each view's dim rim at the automatic threshold
+            (:func:`organlab.silhouette.grow_rim`), as ``organlab reconstruct`` does.
 
         Returns
         -------
         callable(index, angle_deg, image)
         """
-        find = None if background is None else LiveHull.by_subtraction(background, threshold=threshold, floor=floor)
+        find = None if background is None else LiveHull.by_subtraction(background, threshold=threshold,
+                                                                        floor=floor, noise=noise)
 
         def on_view(index, angle_deg, image):
             self.add_view(image, camera0.at_table_angle(angle_deg), None if find is None else find(image))
