@@ -302,9 +302,12 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
     is still far above the background's noise; its difference falls smoothly, pixel to pixel, so it
     passes the second test.  A pixel that the specimen covers by a fraction ``a`` shows ``a`` times
     the contrast of the pixels inside it: the second test refuses the ones covered by less than
-    about ``fraction``, so a correct silhouette is not grown.  Pixels that look like a shadow on the
-    background (colour images: a darker copy of the background's colour, within the same tolerance)
-    are never added.
+    about ``fraction``, so a correct silhouette is not grown.  Where it grew, one last ring takes the
+    candidates showing at least ``outer`` of that difference: the outline's own pixels, covered
+    0.5-0.75 and shaded more than the pixels inside them (the shade keeps falling across the outline),
+    which the ``fraction`` test refuses; where nothing grew (an exact mask, an evenly lit specimen)
+    there is no last ring.  Pixels that look like a shadow on the background (colour images: a darker
+    copy of the background's colour, within the same tolerance) are never added.
 
     Parameters
     ----------
@@ -323,9 +326,13 @@ def grow_rim(mask: np.ndarray, diff: np.ndarray, image: np.ndarray | None = None
     fraction : float
         In (0, 1]: a grown pixel's difference against the largest of its silhouette neighbours'.
     depth : int, px
-        Rings grown at most (0 returns the mask unchanged).
+        Rings grown at most, the last ring included (0 returns the mask unchanged).
     fill_holes : bool
         Fill the background regions the growth encloses (as :func:`clean_mask`).
+    outer : float
+        In (0, ``fraction``]: the last ring's fraction, within ``depth`` px of the pixels grown
+        (``fraction``: no last ring).  0.35 took the rim-shaded ``aaa-3`` render (36 views, 1 mm)
+        from -1.20 % to -0.24 % volume (0.25: +0.24 %, but it grew evenly lit masks).
 
     Returns
     -------
