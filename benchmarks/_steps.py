@@ -128,6 +128,7 @@ def main():
         ("model_warnings", "model checks"),
     ]:
         steps.wrap(engine, attr, name)
+    steps.wrap(cli, "load_session", "session load")  # the command loads it (the stages' kernels warm meanwhile)
     steps.wrap(engine.Engine, "_run_silhouettes", "silhouettes")
     steps.wrap(engine.Engine, "_angle_suggestions", "report")
     steps.wrap(engine.BandField, "occupancy", "occupancy")
