@@ -442,10 +442,7 @@ def _reconstruct(a):
 def _reconstruct_locked(a):
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
-    loading = threading.Thread(target=_load_stages, name="organlab-load", daemon=True)
-    loading.start()  # the stages' modules and first kernels, while the session's images are decoded
-    session = load_session(a.session, allow_outside_paths=bool(a.allow_outside_paths))
-    loading.join()
+    session = _load_session(a)
     try:
         rec = _run_reconstruct(a, session, max_memory)
     except SettingsError as e:  # the library names its parameter; the user typed a flag
@@ -468,6 +465,15 @@ def _reconstruct_locked(a):
     for w in warnings:
         print(f"organlab: warning: {printable(w)}", file=sys.stderr)
     return 0
+
+
+def _load_session(a):
+    """The session, loaded while a thread loads the stages (:func:`_load_stages`); both done on return."""
+    loading = threading.Thread(target=_load_stages, name="organlab-load", daemon=True)
+    loading.start()  # the stages' modules and first kernels, while the session's images are decoded
+    session = load_session(a.session, allow_outside_paths=bool(a.allow_outside_paths))
+    loading.join()
+    return session
 
 
 def _load_stages():
