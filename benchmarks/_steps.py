@@ -128,6 +128,8 @@ def main():
         ("model_warnings", "model checks"),
     ]:
         steps.wrap(engine, attr, name)
+    # the command loads it, the stages' first kernels loading on a thread meanwhile (their CPU counted here)
+    steps.wrap(cli, "_load_session", "session load")
     steps.wrap(engine.Engine, "_run_silhouettes", "silhouettes")
     steps.wrap(engine.Engine, "_angle_suggestions", "report")
     steps.wrap(engine.BandField, "occupancy", "occupancy")

@@ -78,6 +78,11 @@ def run_command(session_dir, vs, repeat):
     time), ``peak_mb`` and ``steps`` (step -> its row of the best run, by CPU time: the
     machine is shared, CPU varies less than wall).
     """
+    # the modules' bytecode cached, as after a user's first run: an environment with PYTHONDONTWRITEBYTECODE
+    # (these sessions' shells) otherwise compiles organlab's 117 modules from source in every run (0.4 s CPU
+    # of the 1.2-1.45 s the imports took, issue 24)
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "organlab"), str(STEPS.parent)],
+                   check=True, capture_output=True)
     best = None
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as out:

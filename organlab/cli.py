@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,7 @@ reconstruct = later("organlab.pipeline", "reconstruct")
 summary_table = later("organlab.pipeline", "summary_table")
 write_outputs = later("organlab.pipeline", "write_outputs")
 init_session = later("organlab.scaffold", "init_session")
+warm_kernels = later("organlab.silhouette", "warm_kernels")
 mesh_result = later("organlab.surface", "mesh_result")
 carved_depth_picture = later("organlab.coloring", "carved_depth_picture")
 Reconstruction = later("organlab.engine", "Reconstruction")
@@ -440,7 +442,7 @@ def _reconstruct(a):
 def _reconstruct_locked(a):
     check_output_dir(a.out)  # before the long work
     max_memory = parse_memory(a.max_memory) if a.max_memory is not None else None
-    session = load_session(a.session, allow_outside_paths=True) if a.allow_outside_paths else a.session
+    session = _load_session(a)
     try:
         rec = _run_reconstruct(a, session, max_memory)
     except SettingsError as e:  # the library names its parameter; the user typed a flag
@@ -463,6 +465,27 @@ def _reconstruct_locked(a):
     for w in warnings:
         print(f"organlab: warning: {printable(w)}", file=sys.stderr)
     return 0
+
+
+def _load_session(a):
+    """The session, loaded while a thread loads the stages (:func:`_load_stages`); both done on return."""
+    loading = threading.Thread(target=_load_stages, name="organlab-load", daemon=True)
+    loading.start()  # the stages' modules and first kernels, while the session's images are decoded
+    session = load_session(a.session, allow_outside_paths=bool(a.allow_outside_paths))
+    loading.join()
+    return session
+
+
+def _load_stages():
+    """Import the stages (numba, scipy, OpenCV: about 0.8 s CPU) and load the silhouettes' numba kernels from
+    their cache (numba's own registries with the first one: 0.5 s), on a thread while ``reconstruct`` loads
+    the session: Python holding the GIL here, decoding the images there (cv2 releases it).  A failure here is
+    left to the run itself, which imports and calls the same things and says what went wrong."""
+    try:
+        reconstruct.resolve()
+        warm_kernels()
+    except Exception:  # noqa: BLE001 (the run reports it)
+        pass
 
 
 def _run_reconstruct(a, session, max_memory):

@@ -4,6 +4,7 @@ import pytest
 from organlab.silhouette import (
     auto_threshold,
     background_model,
+    background_noise,
     clean_mask,
     coverage,
     difference,
@@ -116,3 +117,21 @@ def test_coverage_of_a_blended_edge():
 def test_constant_difference_is_an_error():
     with pytest.raises(ValueError, match="constant"):
         auto_threshold(np.zeros((10, 10)))
+
+
+def test_warm_kernels_load_the_specialisations_the_stage_calls():
+    """``warm_kernels`` (the reconstruct command runs it on a thread while the session loads) must load the
+    very specialisations the stage then calls: a tiny input of another dtype or layout would load one the
+    stage never uses and leave the real one (and numba's 0.5 s registry load) to the stage."""
+    from organlab.silhouette import _kernels, warm_kernels
+
+    warm_kernels()
+    kernels = (_kernels.median_frames, _kernels.std_frames, _kernels.color_distance)
+    before = [list(k.signatures) for k in kernels]
+    assert all(before)
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 256, (12, 16, 3), dtype=np.uint8) for _ in range(4)]
+    bg = background_model(frames)
+    background_noise(frames)
+    difference(frames[0], bg)
+    assert [list(k.signatures) for k in kernels] == before  # nothing new compiled or loaded by the stage

@@ -25,6 +25,7 @@ Modules: ``_subtract`` (the functions above), ``_keying`` (backdrop keying),
 """
 
 from ..masks import Silhouette, as_arrays
+from ._kernels import warm_kernels
 from ._model import SilhouetteModel, session_silhouettes, silhouettes
 from ._subtract import (
     auto_threshold,
@@ -51,4 +52,5 @@ __all__ = [
     "session_silhouettes",
     "as_arrays",
     "SilhouetteModel",
+    "warm_kernels",
 ]

@@ -107,3 +107,16 @@ def std_frames(stack):
         for i in range(m):
             out[b0 + i] = np.sqrt(np.float32(np.float64(acc[i]) / (n - 1)))
     return out
+
+
+def warm_kernels() -> None:
+    """Load the kernels above from numba's cache, ahead of the first silhouettes.
+
+    The first cached kernel a process loads also loads numba's own registries (about 0.5 s CPU,
+    Python holding the GIL); the ``reconstruct`` command does it on a thread while the session's
+    images are decoded (cv2 releases the GIL).  Tiny inputs of the dtypes and layouts the stage
+    passes: the same compiled specialisations.
+    """
+    median_frames(np.zeros((1, 1), np.uint8))
+    std_frames(np.zeros((2, 1), np.uint8))
+    color_distance(np.zeros((1, 1, 3), np.uint8), np.zeros((1, 1, 3), np.float32))
