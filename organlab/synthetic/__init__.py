@@ -50,6 +50,7 @@ __all__ = [
     "Sphere",
     "Cylinder",
     "AAAPhantom",
+    "BranchedAAA",
     "GroovedSpecimen",
     "DentedSpecimen",
     "Moved",
@@ -90,6 +91,7 @@ from ._lighting import Painted, make_lit_session, render_lit
 from ._session import DEFAULT_ROI, make_session, with_true_cameras
 from ._specimens import (
     AAAPhantom,
+    BranchedAAA,
     Cylinder,
     DentedSpecimen,
     GroovedSpecimen,
