@@ -10,6 +10,10 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
 * ``driftb_dented``: the same with another render (seed) and another drift;
 * ``drift_aaa11`` / ``ok_aaa11``: another drift (seed 25) on ``aaa-11`` (its outline shows its angles, its
   hull is near its volume), and the same render with the true angles;
+* ``drift_br11`` / ``ok_br11``: another drift (seed 35) on ``aaa-11+branch`` (``aaa-11`` with two renal-artery-like
+  stumps near its top, :class:`organlab.synthetic.BranchedAAA`: its outline shows its angles, its hull is near its
+  volume), and the same render with the true angles; ``driftb_br11``: another render and drift (seed 45), no
+  default chosen on it;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
 * ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
@@ -65,6 +69,12 @@ def scenes(n=36, size=(640, 480)):
         # near its volume (no hidden concavity, unlike dented); another render and drift; and its correct twin
         "drift_aaa11": dict(base, seed=21, specimen="aaa-11", true_angles_deg=drift_angles(n, 25)),
         "ok_aaa11": dict(base, seed=21, specimen="aaa-11"),
+        # aaa-11 with two renal-artery-like stumps near its top (BranchedAAA): its outline shows its angles and
+        # its hull is near its volume; a drift to look at, another render and drift no default was chosen on,
+        # and the first one's correct twin
+        "drift_br11": dict(base, seed=31, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 35)),
+        "driftb_br11": dict(base, seed=41, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 45)),
+        "ok_br11": dict(base, seed=31, specimen="aaa-11+branch"),
     }
 
 

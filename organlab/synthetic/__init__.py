@@ -24,7 +24,8 @@ angles (a table that lost steps, a mislabelled view: ``true_angles_deg``), a cam
 bumped after the board images (``camera_bump``), a specimen that slid on the plate
 from a view on (``slip``, :class:`Moved`); ``truth.json`` then holds the true poses.
 ``AAAPhantom(shape_seed=N)`` (``make_specimen("aaa-N")``) is another AAA of the
-sample's family.
+sample's family; :class:`BranchedAAA` (``make_specimen("aaa-N+branch")``) the same with two
+renal-artery-like stumps near its top, whose outline shows the table's angles.
 
 ``python -m organlab.synthetic OUT --seed 0`` writes a complete session
 folder in the ``organlab.session/1`` format, with ``truth.json`` beside it.
@@ -50,6 +51,7 @@ __all__ = [
     "Sphere",
     "Cylinder",
     "AAAPhantom",
+    "BranchedAAA",
     "GroovedSpecimen",
     "DentedSpecimen",
     "Moved",
@@ -90,6 +92,7 @@ from ._lighting import Painted, make_lit_session, render_lit
 from ._session import DEFAULT_ROI, make_session, with_true_cameras
 from ._specimens import (
     AAAPhantom,
+    BranchedAAA,
     Cylinder,
     DentedSpecimen,
     GroovedSpecimen,

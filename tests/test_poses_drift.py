@@ -1,0 +1,126 @@
+"""Issue 20 (a): a table that lost steps, corrected from the silhouettes of a specimen whose outline shows its angles.
+
+``aaa-11+branch`` (:class:`organlab.synthetic.BranchedAAA`): an AAA of the sample's family with another shape and
+two renal-artery-like stumps near its top.  A plain AAA is near symmetric about the table axis (its drift moves
+its outline by less than 0.2 px: the gate refuses, docs/trust.md); the stumps show the angles, and its visual
+hull is near its volume (no hidden concavity, unlike ``dented``).  The refined angles are scored against the
+angles that rendered the views (``truth.json``), the volume against the specimen's exact volume.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from organlab.synthetic import AAAPhantom, BranchedAAA, make_specimen
+
+#: Cheaper than the issue's 36 views of 640 x 480 (bench_poses.py: drift_br11 0.161 / 0.436 degrees, driftb_br11
+#: 0.149 / 0.533): 480 x 360, where the stumps' outline moves 3/4 as many px per degree.  Measured on this render:
+#: 36 views 480 x 360 applied, 0.211 / 0.836 degrees; 24 views 480 x 360 0.324 / 1.869; 320 x 240 (24 or 36
+#: views) refused by the gate (left-out views 0.141 -> 0.105 px, 0.036 px < the 0.05 px gain needed)
+SCENE = dict(image_size=(480, 360), n_views=36)
+#: measured 0.211 degrees (1.54 before)
+MEDIAN_DEG = 0.3
+#: measured 0.836 degrees (3.38 before): at 480 x 360 a view with a large jitter step is smoothed toward its neighbours
+MAX_DEG = 1.0
+#: 2 mm hull (refined cameras) against the exact volume: measured -0.97 % (true cameras' hull -0.93 %: the
+#: 2 mm hull's own error at 480 x 360; the issue's 0.5 % is at 1 mm, 640 x 480: -0.08 %, docs/trust.md)
+VOLUME_TOL = 0.015
+#: ... against the true cameras' hull (what the poses cost): measured -0.031 % (calibrated cameras -0.12 %)
+POSE_VOLUME_TOL = 0.0008
+
+
+def test_branched_aaa_volume_is_exact():
+    """The stumps' volume outside the aorta (capsule minus its part inside, by quadrature) against Monte Carlo."""
+    b, a = make_specimen("aaa-11+branch"), make_specimen("aaa-11")
+    assert isinstance(b, BranchedAAA) and isinstance(a, AAAPhantom) and b.name == "aaa-11+branch"
+    extra = [st.volume - st.overlap(b.star) for st in b.stumps]
+    assert abs(b.volume - a.volume - sum(extra)) < 1e-6
+    # the quadrature has converged (measured: 24 x 64 against 48 x 128 nodes, 1e-13 mm^3 apart)
+    assert all(abs(st.overlap(b.star) - st.overlap(b.star, 48, 128)) < 1e-9 for st in b.stumps)
+    rng = np.random.default_rng(7)
+    n = 400_000
+    for st, ex in zip(b.stumps, extra):
+        # uniform samples in the stump's box (its frame), inside the branched solid but not the plain AAA
+        e, ez = st.e, np.array([0.0, 0.0, 1.0])
+        ep = np.cross(ez, e)
+        x = rng.random((n, 3))
+        s = st.s0 + x[:, 0] * (st.s1 + st.radius - st.s0)
+        u, v = (2 * x[:, 1] - 1) * st.radius, (2 * x[:, 2] - 1) * st.radius
+        p = s[:, None] * e + u[:, None] * ep + (st.z + v)[:, None] * ez
+        f = np.mean(b.inside(p) & ~a.inside(p))
+        box = (st.s1 + st.radius - st.s0) * 4 * st.radius**2
+        sd = np.sqrt(f * (1 - f) / n) * box
+        # measured (5 x 4e6 samples): 419.60 +- 0.10 against 419.52, 313.58 +- 0.08 against 313.68 mm^3
+        assert abs(f * box - ex) < 4 * sd, (f * box, ex, sd)
+    # rays: every first hit lies on the union's boundary (just before it outside, just after it inside)
+    from organlab.synthetic import default_camera
+
+    cam = default_camera((320, 240)).at_table_angle(35.0)
+    uv = np.stack(np.meshgrid(np.arange(100.0, 220.0, 0.5), np.arange(20.0, 60.0, 0.5)), -1).reshape(-1, 2)
+    d = np.column_stack([(uv - cam.K[:2, 2]) / np.diag(cam.K)[:2], np.ones(len(uv))]) @ cam.R
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, nrm = b.intersect(np.broadcast_to(cam.center, d.shape), d)
+    hit = np.isfinite(t)
+    q = cam.center + t[hit, None] * d[hit]
+    stump_hits = np.zeros(hit.sum(), bool)
+    for st in b.stumps:
+        stump_hits |= st._inside(q + 1e-3 * d[hit]) & ~a.inside(q + 1e-3 * d[hit])
+    assert stump_hits.sum() > 10  # the top's rays see the stumps (18 of them)
+    assert b.inside(q + 1e-4 * d[hit]).all() and not b.inside(q - 1e-4 * d[hit]).any()
+    assert np.allclose(np.linalg.norm(nrm[hit], axis=1), 1.0) and (np.einsum("ij,ij->i", nrm[hit], d[hit]) < 0).all()
+    with pytest.raises(ValueError, match="90 degrees apart"):
+        BranchedAAA(shape_seed=11, branches=((80.0, 165.0, 3.0, 15.0), (120.0, 164.0, 3.0, 15.0)))
+
+
+def _drift(n, seed, total=3.0, jitter=0.3):
+    """True table angles drifting linearly to ``total`` degrees over the turn, plus ``jitter`` degrees per stop."""
+    g = np.random.default_rng(seed)
+    return 360.0 * np.arange(n) / n + total * np.arange(n) / (n - 1) + np.concatenate([[0.0], g.normal(0, jitter, n - 1)])
+
+
+@pytest.mark.slow
+def test_drifting_table_on_a_branched_aaa_is_corrected(tmp_path):
+    from organlab.calibration import calibration_for
+    from organlab.carving import hull_field
+    from organlab.grid import VoxelGrid
+    from organlab.poses import refine_poses
+    from organlab.session import load_session
+    from organlab.silhouette import SilhouetteModel
+    from organlab.surface import mesh_from_field
+    from organlab.synthetic import make_session
+
+    from tests._shared_data import POSE_SCENE
+
+    n = SCENE["n_views"]
+    true = _drift(n, 55)  # a render and a drift the benchmark's scenes (drift_br11, driftb_br11) did not use
+    make_session(tmp_path, **dict(POSE_SCENE, **SCENE), seed=51, specimen="aaa-11+branch", true_angles_deg=true)
+    s = load_session(tmp_path)
+    cal, _ = calibration_for(s)
+    model = SilhouetteModel.from_session(s)
+    sils = model.silhouettes()
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    cmd = np.array([v.angle_deg for v in s.views])
+    assert np.allclose([v["true_angle_deg"] for v in truth["views"]], true)
+    e0 = np.abs(cmd - true)
+    assert np.median(e0) > 1.0 and e0.max() > 2.5  # measured 1.54 / 3.38 degrees
+
+    r = refine_poses(s, cal, sils, mode="auto", images=model.images, background=model.background)
+    assert r.flagged and r.accepted and r.gate["refined"] == "angles", r.reason
+    B = cal.turntable.camera.R
+    used = np.array([np.degrees(np.arctan2((B.T @ c.R)[1, 0], (B.T @ c.R)[0, 0])) for c in r.cameras])
+    e1 = np.abs((used - true + 180.0) % 360.0 - 180.0)
+    assert np.median(e1) <= MEDIAN_DEG and e1.max() <= MAX_DEG, (np.median(e1), e1.max())
+
+    # the volume: 2 mm hulls of the same silhouettes, against the specimen's exact volume and the true cameras' hull
+    from organlab.camera import Camera
+
+    grid = VoxelGrid.from_session(s, 2.0)
+    cam = cal.camera
+    true_cams = [Camera(cam.K, cam.dist, np.array(v["R"]), np.array(v["t"]), image_size=cam.image_size) for v in truth["views"]]
+    vol, vol_true, vol_cal = (mesh_from_field(hull_field(sils, cs, grid, sparse=True), grid).volume
+                              for cs in (r.cameras, true_cams, cal.cameras(s)))
+    exact = make_specimen("aaa-11+branch").volume
+    assert abs(vol / exact - 1) < VOLUME_TOL, vol / exact - 1
+    assert abs(vol / vol_true - 1) < POSE_VOLUME_TOL, vol / vol_true - 1
+    assert abs(vol_cal / vol_true - 1) > abs(vol / vol_true - 1)
