@@ -636,41 +636,47 @@ def _min_angles(V, F, out):
 
 def _smart_relax(V, F, ref, bad, steps=3):
     """Move the vertices of the ``bad`` faces toward their stars' centroids (projected onto ``ref``)
-    where that raises the smallest angle of their stars."""
+    where that raises the smallest angle of their stars.  Returns ``V`` itself when none moved."""
     verts = np.unique(F[bad])
     if len(verts) == 0:
         return V
-    sel = np.isin(F, verts).any(axis=1)
-    fs = np.flatnonzero(sel)
-    Fs = F[fs]  # the stars of verts: their normals and centroids need no other face
+    # the stars of verts (their normals and centroids need no other face), on their own vertices
+    used, Fl = np.unique(F[np.isin(F, verts).any(axis=1)], return_inverse=True)
+    Fl = Fl.reshape(-1, 3)
+    lv = np.searchsorted(used, verts)
+    Vl, moved = V[used], False
     for _ in range(steps):
-        n = _vertex_normals(V, Fs)
-        c = _neighbour_mean(V, Fs)[verts] - V[verts]
-        c -= np.einsum("ij,ij->i", c, n[verts])[:, None] * n[verts]
-        q = V[verts] + c if ref is None else ref.closest(V[verts] + c)[0]
-        before = _star_min(V, F, fs, verts)
-        W = V.copy()
-        W[verts] = q
-        after = _star_min(W, F, fs, verts)
+        n = _vertex_normals(Vl, Fl)
+        c = _neighbour_mean(Vl, Fl)[lv] - Vl[lv]
+        c -= np.einsum("ij,ij->i", c, n[lv])[:, None] * n[lv]
+        q = Vl[lv] + c if ref is None else ref.closest(Vl[lv] + c)[0]
+        before = _star_min(Vl, Fl, lv)
+        W = Vl.copy()
+        W[lv] = q
+        after = _star_min(W, Fl, lv)
         # the normals of the star must not turn over either
         good = after > before
         if not good.any():
             break
-        W[verts[~good]] = V[verts[~good]]
-        nb = np.cross(V[F[fs, 1]] - V[F[fs, 0]], V[F[fs, 2]] - V[F[fs, 0]])
-        na = np.cross(W[F[fs, 1]] - W[F[fs, 0]], W[F[fs, 2]] - W[F[fs, 0]])
+        W[lv[~good]] = Vl[lv[~good]]
+        nb = np.cross(Vl[Fl[:, 1]] - Vl[Fl[:, 0]], Vl[Fl[:, 2]] - Vl[Fl[:, 0]])
+        na = np.cross(W[Fl[:, 1]] - W[Fl[:, 0]], W[Fl[:, 2]] - W[Fl[:, 0]])
         if (np.einsum("ij,ij->i", nb, na) <= 0).any():
             break
-        V = W
-    return V
+        Vl, moved = W, True
+    if not moved:
+        return V
+    out = V.copy()
+    out[used] = Vl
+    return out
 
 
-def _star_min(V, F, fs, verts):
-    """Smallest angle over the star of each of ``verts`` (among faces ``fs``)."""
-    ang = _face_min_angles(V, F[fs])
+def _star_min(V, F, verts):
+    """Smallest angle over the star of each of ``verts`` (among faces ``F``)."""
+    ang = _face_min_angles(V, F)
     out = np.full(len(V), 180.0)
     for i in range(3):
-        np.minimum.at(out, F[fs, i], ang)
+        np.minimum.at(out, F[:, i], ang)
     return out[verts]
 
 
