@@ -144,14 +144,15 @@ def _segments_apart(V, a, b, c, d):
 
 
 @njit(cache=True)
-def _split_long(V, F, H, alive, lock, nv, nf, hi):
+def _split_long(V, F, H, alive, lock, nv, nf, hi, todo, keep):
     """Split every edge longer than ``hi`` times its target (the longest of a face first).
 
-    Returns ``(nv, nf, full)``: ``full`` when the arrays ran out of room (the caller grows them).
+    Visits the faces ``todo`` (ascending; those below ``nf`` at the start); marks in ``keep`` those
+    with an edge to split (see :func:`_next_todo`).  Returns ``(nv, nf, full)``: ``full`` when the
+    arrays ran out of room (the caller grows them).
     """
     start, lst = _stars(F, alive, nf, nv)
-    nf0 = nf
-    for f in range(nf0):
+    for f in todo:
         if not alive[f] or lock[f]:
             continue
         best, bi = 0.0, -1
@@ -164,6 +165,7 @@ def _split_long(V, F, H, alive, lock, nv, nf, hi):
                 best, bi = r, i
         if bi < 0:
             continue
+        keep[f] = True
         if nv + 1 > V.shape[0] or nf + 2 > F.shape[0]:
             return nv, nf, True
         a, b, c = F[f, bi], F[f, (bi + 1) % 3], F[f, (bi + 2) % 3]
@@ -187,20 +189,21 @@ def _split_long(V, F, H, alive, lock, nv, nf, hi):
 
 
 @njit(cache=True)
-def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, force):
+def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, force, todo, keep):
     """Collapse every edge shorter than ``lo`` times its target into its midpoint, where that is safe.
 
     Safe: the link condition (the two ends share only the two opposite vertices), those two keep
     more than 3 neighbours, no edge of the new star longer than ``hi`` times its target, and no
     face of the star turns by more than ``acos(cos_turn)`` (a flip or a fold).  With ``force`` (one
     flag per face, or empty), only the flagged faces' shortest edges are collapsed, whatever their
-    length, where the star's smallest angle grows.  Returns collapses done.
+    length, where the star's smallest angle grows.  Visits the faces ``todo`` (ascending); marks in
+    ``keep`` those with an edge to collapse.  Returns collapses done.
     """
     start, lst = _stars(F, alive, nf, nv)
     done = 0
     na = np.empty(64, dtype=np.int64)
     forced = len(force) > 0
-    for f in range(nf):
+    for f in todo:
         if not alive[f] or lock[f] or (forced and not force[f]):
             continue
         best, bi = (np.inf if forced else 1.0), -1
@@ -213,6 +216,7 @@ def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, forc
                 best, bi = r, i
         if bi < 0:
             continue
+        keep[f] = True
         a, b, c = F[f, bi], F[f, (bi + 1) % 3], F[f, (bi + 2) % 3]
         if not (_star_free(lock, start, lst, a) and _star_free(lock, start, lst, b)
                 and _star_free(lock, start, lst, c)):
@@ -311,19 +315,21 @@ def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, forc
 
 
 @njit(cache=True)
-def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain, cos_good, tol):
+def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain, cos_good, tol, todo, keep):
     """Flip an edge to the other diagonal of its two faces where the smallest angle grows by ``gain``.
 
     Only across edges whose faces are less than ``acos(cos_fold)`` apart (a ridge or a thin part's rim is
-    kept), never onto an existing edge, never turning a new face against the old ones.  Returns flips done.
+    kept), never onto an existing edge, never turning a new face against the old ones.  Visits the faces
+    ``todo`` (ascending); marks in ``keep`` those with an angle below ``acos(cos_good)``.  Returns flips done.
     """
     start, lst = _stars(F, alive, nf, nv)
     done = 0
-    for f in range(nf):
+    for f in todo:
         if not alive[f] or lock[f]:
             continue
         if _max_cos(V, F[f, 0], F[f, 1], F[f, 2]) < cos_good:
             continue  # a face whose angles are all above good_deg: its neighbours' own visits flip its edges
+        keep[f] = True
         for i in range(3):
             a, b, c = F[f, i], F[f, (i + 1) % 3], F[f, (i + 2) % 3]
             g = _other_face(F, alive, lock, start, lst, f, a, b)
@@ -373,6 +379,17 @@ def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain, cos_good, tol):
 #: faces whose angles are all above 40 degrees are left to their neighbours' flips
 _COS_GOOD = math.cos(math.radians(40.0))
 _NONE = np.zeros(0, dtype=np.bool_)
+
+
+def _next_todo(keep, lock, alive, nf):
+    """The faces the next sweep visits: those the last one found an operation for and did not change
+    (``keep``) and those it changed (``lock``, less the faces locked from the start, dead ones).
+
+    Every other face was visited with nothing to do, and its vertices and targets are as they were
+    (an operation locks every face whose corner it moves or whose target it changes): the next sweep
+    would skip it too, so it runs the same operations in the same order as one over all faces.
+    """
+    return np.flatnonzero((keep[:nf] | lock[:nf]) & alive[:nf])
 
 
 def _compact(V, F, H, alive, valive, nv, nf):
@@ -501,30 +518,41 @@ def adaptive_remesh(mesh: Mesh, reference: Mesh, sizing: np.ndarray, *, iteratio
         alive = np.zeros(cap_f, dtype=bool)
         alive[:nf] = True
         valive = np.ones(cap_v, dtype=bool)
-        # splits until none is left (each sweep locks the faces it changed)
+        # splits until none is left (each sweep locks the faces it changed); every sweep after the first
+        # visits only the faces the last one changed or found something to do for (_next_todo)
+        todo = np.arange(nf)
         for _ in range(8):
             lock = np.zeros(len(alive), dtype=bool)
+            keep = np.zeros(len(alive), dtype=bool)
             nv0 = nv
-            nv, nf, full = _split_long(Vb, Fb, Hb, alive, lock, nv, nf, 4.0 / 3.0)
+            nv, nf, full = _split_long(Vb, Fb, Hb, alive, lock, nv, nf, 4.0 / 3.0, todo, keep)
             if full:
                 Vb = np.concatenate([Vb, np.zeros_like(Vb)])
                 Hb = np.concatenate([Hb, np.zeros_like(Hb)])
                 valive = np.concatenate([valive, np.ones(len(valive), dtype=bool)])
                 Fb = np.concatenate([Fb, np.zeros_like(Fb)])
                 alive = np.concatenate([alive, np.zeros(len(alive), dtype=bool)])
+                todo = np.arange(nf)  # the next sweep starts over, as it did
                 continue
             if nv == nv0:
                 break
+            todo = _next_todo(keep, lock, alive, nf)
         # each sweep locks what it changed; sweeps stop when one does less than 0.1 % of the faces' worth
         few = 1
+        todo = np.arange(nf)
         for _ in range(8):
             lock = ~alive[: len(alive)].copy()
-            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn, _NONE) < few:
+            keep = np.zeros(len(alive), dtype=bool)
+            if _collapse_short(Vb, Fb, Hb, alive, valive, lock, nv, nf, 0.8, 4.0 / 3.0, cos_turn, _NONE, todo, keep) < few:
                 break
+            todo = _next_todo(keep, lock, alive, nf)
+        todo = np.arange(nf)
         for _ in range(4):
             lock = ~alive.copy()
-            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5), _COS_GOOD, 0.0) < few:
+            keep = np.zeros(len(alive), dtype=bool)
+            if _flip_edges(Vb, Fb, alive, lock, nv, nf, cos_fold, math.radians(0.5), _COS_GOOD, 0.0, todo, keep) < few:
                 break
+            todo = _next_todo(keep, lock, alive, nf)
         V, F, H = _compact(Vb, Fb, Hb, alive, valive, nv, nf)
         V, H = _relax(V, F, H, ref, rsize, relax)
     return _fix_slivers(V, F, H, ref, rsize, min_angle=min_angle, tol_mm=tol_mm, cos_fold=cos_fold, cos_turn=cos_turn)
@@ -602,9 +630,10 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
                 V[verts] += 0.5 * (_neighbour_mean(V, Fr)[verts] - V[verts])
         nf = len(Fs)
         alive = np.ones(nf, dtype=bool)
-        flips = _flip_edges(V, Fs, alive, edge.copy(), nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm)
+        every, keep = np.arange(nf), np.zeros(nf, dtype=bool)
+        flips = _flip_edges(V, Fs, alive, edge.copy(), nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm, every, keep)
         bad = _face_min_angles(V, Fs) < min_angle + 1.0
-        collapses = _collapse_short(V, Fs, H, alive, valive, edge.copy(), nv, nf, 1.0, 2.0, cos_turn, bad)
+        collapses = _collapse_short(V, Fs, H, alive, valive, edge.copy(), nv, nf, 1.0, 2.0, cos_turn, bad, every, keep)
         if collapses:
             alive_all[idx[~alive]] = False
             F[idx] = Fs
