@@ -20,6 +20,9 @@ degrees (22.2), deviation 0.030 / 0.63 voxel (0.277 / 11.4), worst view +0.0011 
 deviation 0.022 / 2.18 voxels (0.05 / 2.7).
 Again on main of 2026-12-03 (helper `dino`, loaded, best of 3): sample 1 mm 0.90 s, dino 1 mm 1.80 s, every
 other figure the same (the dino's session now from organlab.datasets.write_middlebury_session).
+Issue 24 (helper `finish`, 2026-12-03, load 7-12 on 2 cores, warm, alternating with fcc61ee): sample
+0.25 mm 17.9-19.3 s -> 12.5-14.9 s CPU (the sliver clean-up on regions around the bad faces, sweeps over
+the faces left to do), the same 143 608 faces bit for bit; 1 mm 0.80-0.86 s both, 20 930 faces, 32.2 deg.
 """
 
 from __future__ import annotations
