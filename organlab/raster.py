@@ -23,7 +23,7 @@ from .nbcam import pack_camera, to_camera, to_pixel
 __all__ = ["model_mask", "MeshRaster", "fill_triangles", "voxel_boundary_quads"]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fill(uv, faces, out):
     h, w = out.shape
     for f in range(faces.shape[0]):
@@ -76,6 +76,9 @@ def _front_faces(faces, z):
 class MeshRaster:
     """A mesh prepared once for :func:`model_mask` in many cameras (its arrays converted once).
 
+    :meth:`mask` may run on several threads at once (its kernels release the GIL; each call has
+    its own buffers).
+
     Parameters
     ----------
     vertices : (V, 3) float, mm, world frame
@@ -96,18 +99,17 @@ class MeshRaster:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         self.verts = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
-        self.uv = np.empty((len(self.verts), 2))
-        self.z = np.empty(len(self.verts))
 
     def mask(self, camera: Camera, shape: tuple[int, int]) -> np.ndarray:
         """Pixels whose centre sees the mesh (as :func:`model_mask`), ``shape`` bool."""
         out = np.zeros(tuple(int(s) for s in shape), dtype=np.bool_)
         if len(self.faces) == 0:
             return out
-        _project(self.verts, pack_camera(camera), self.uv, self.z)
-        keep = _front_faces(self.faces, self.z)
+        uv, z = np.empty((len(self.verts), 2)), np.empty(len(self.verts))
+        _project(self.verts, pack_camera(camera), uv, z)
+        keep = _front_faces(self.faces, z)
         faces = self.faces if keep.all() else np.ascontiguousarray(self.faces[keep])
-        _fill(self.uv, faces, out)
+        _fill(uv, faces, out)
         return out
 
 

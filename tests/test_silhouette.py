@@ -126,7 +126,7 @@ def test_warm_kernels_load_the_specialisations_the_stage_calls():
     from organlab.silhouette import _kernels, warm_kernels
 
     warm_kernels()
-    kernels = (_kernels.median_frames, _kernels.std_frames, _kernels.color_distance)
+    kernels = (_kernels.std_frames, _kernels.color_distance)  # the median of <= 32 frames: numpy
     before = [list(k.signatures) for k in kernels]
     assert all(before)
     rng = np.random.default_rng(3)
@@ -135,3 +135,19 @@ def test_warm_kernels_load_the_specialisations_the_stage_calls():
     background_noise(frames)
     difference(frames[0], bg)
     assert [list(k.signatures) for k in kernels] == before  # nothing new compiled or loaded by the stage
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 6, 19, 20, 32, 33, 40])
+def test_median_frames_equals_numpy_median(n):
+    """Both ways of the background median (the numpy selection network up to 32 frames, the numba
+    histogram above) give numpy's median exactly, odd and even counts; the frames are left as they were."""
+    from organlab.silhouette._kernels import median_frames
+
+    rng = np.random.default_rng(n)
+    stack = rng.integers(0, 256, (n, 997), dtype=np.uint8)
+    stack[:, :50] = rng.integers(100, 103, (n, 50))  # ties, as in real frames that differ by noise
+    copy = stack.copy()
+    got = median_frames(stack)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, np.median(stack, axis=0).astype(np.float32))
+    np.testing.assert_array_equal(stack, copy)

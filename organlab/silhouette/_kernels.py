@@ -2,7 +2,10 @@
 numpy expressions they replace, computed in one pass and in parallel.
 
 * :func:`median_frames` -- ``np.median(stack, axis=0).astype(np.float32)`` of
-  uint8 frames (a per-pixel histogram: the median of integers is exact);
+  uint8 frames (the median of integers is exact): for up to :data:`_NETWORK_MAX`
+  frames a selection network of numpy minima and maxima (no numba: 0.034 s CPU
+  against the kernel's 0.11 s for the sample's 20 frames of 640 x 480 x 3),
+  else a per-pixel histogram in numba;
 * :func:`std_frames` -- ``stack.astype(np.float32).std(axis=0, ddof=1)`` of
   uint8 frames, as numpy evaluates it (float32 sums over the frames in
   order, the mean and the variance divided in float64 and rounded to float32,
@@ -20,8 +23,36 @@ import numpy as np
 from numba import njit, prange
 
 
-@njit(cache=True, parallel=True)
+#: Most frames :func:`median_frames` sorts with numpy minima and maxima (its comparisons grow as
+#: the square of the frames, the numba kernel's work linearly: estimated even at about 40 frames from the 20-frame timings).
+_NETWORK_MAX = 32
+
+
 def median_frames(stack):
+    """Per-pixel median over axis 0 of ``(N, P)`` uint8, as float32 ``(P,)``.
+
+    Equal to ``np.median(stack, axis=0).astype(np.float32)`` (integers: the middle value, or the
+    mean of the two middle values for even ``N``, exact in float32).
+    """
+    n = stack.shape[0]
+    if n > _NETWORK_MAX:
+        return _median_histogram(stack)
+    # bubble passes of a sorting network, element-wise over the pixels: after pass i the i + 1
+    # largest values of each pixel lie sorted at the top, so n - lo passes place both middle ranks
+    rows = list(np.array(stack, dtype=np.uint8))  # copies: the caller's frames stay as they are
+    lo, hi = (n - 1) // 2, n // 2
+    spare = np.empty_like(rows[0])
+    for i in range(n - lo):
+        for j in range(n - 1 - i):
+            a, b = rows[j], rows[j + 1]
+            np.minimum(a, b, out=spare)
+            np.maximum(a, b, out=b)
+            rows[j], spare = spare, a
+    return (rows[lo].astype(np.float32) + rows[hi]) / np.float32(2.0)
+
+
+@njit(cache=True, parallel=True)
+def _median_histogram(stack):
     """Per-pixel median over axis 0 of ``(N, P)`` uint8, as float32 ``(P,)``.
 
     The middle value (mean of the two middle values for even ``N``) of each
@@ -117,6 +148,6 @@ def warm_kernels() -> None:
     images are decoded (cv2 releases the GIL).  Tiny inputs of the dtypes and layouts the stage
     passes: the same compiled specialisations.
     """
-    median_frames(np.zeros((1, 1), np.uint8))
+    _median_histogram(np.zeros((1, 1), np.uint8))  # the carving's parallel kernels share its threading layer
     std_frames(np.zeros((2, 1), np.uint8))
     color_distance(np.zeros((1, 1, 3), np.uint8), np.zeros((1, 1, 3), np.float32))
