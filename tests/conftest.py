@@ -54,27 +54,32 @@ def small_session(tmp_path_factory):
 # (its module fixtures are made once), except the tests named in UNIT_SECONDS: each is a unit of its own
 # (they share no module fixture with the rest of their file), so that test_notebooks' twelve notebook runs
 # (about 220 s together) spread over both workers instead of holding one.
-# Seconds are CPU seconds (user + sys, children included) per file alone, module fixtures included, less
-# its tests that are units of their own; from
-# issue 24's per-test CPU table (tests/conftest.py's own order; 2026-12-03, see docs/benchmarks.md); the files
-# not named follow, most tests first.  Refresh them when they move (`pytest --durations=0`).
+# FILE_SECONDS: CPU seconds (user + sys, children included) of a file alone, its module fixtures included, less
+# its tests that are units of their own; measured per test by issue 24's helpers on 2026-12-03 under load
+# (test_trust 100, test_photo 123 of which the dino test 76-84, test_api's snippet test 20) or, where no CPU
+# figure exists, the closing note's slowest tests summed per file.  The files not named follow, most tests
+# first.  Refresh them when they move (`pytest --durations=0`, or CPU per test).
 FILE_SECONDS = {
-    "test_notebooks.py": 220, "test_photo.py": 120, "test_trust.py": 100, "test_sweep.py": 60,
-    "test_hostile_results.py": 45, "test_pipeline.py": 40, "test_coloring_robust.py": 40, "test_coloring.py": 35,
-    "test_poses.py": 70, "test_backdrop.py": 30, "test_capture.py": 30, "test_camera_formats.py": 30,
-    "test_real_dino.py": 30, "test_poses_faces.py": 20,
-    "test_benchmarks.py": 25, "test_notebook_jupyterlab.py": 25, "test_agreement_limits.py": 25,
+    "test_trust.py": 100, "test_poses.py": 70, "test_sweep.py": 60, "test_photo.py": 45, "test_hostile_results.py": 45,
+    "test_pipeline.py": 40, "test_coloring.py": 35, "test_coloring_robust.py": 33, "test_backdrop.py": 30,
+    "test_capture.py": 30, "test_camera_formats.py": 30, "test_real_dino.py": 30, "test_benchmarks.py": 25,
+    "test_notebook_jupyterlab.py": 25, "test_agreement_limits.py": 25, "test_poses_faces.py": 20, "test_api.py": 20,
+    "test_notebooks.py": 3,
 }
-#: Tests scheduled as units of their own (node id without the file's folder, or its prefix up to a "[":
-#: every parametrization) -> CPU seconds of one
+#: Tests scheduled as units of their own (node id from the file's name on; or up to a "[": each of its
+#: parametrizations) -> CPU seconds of one.  The notebooks: each runs in its own kernel (measured CPU, kernel
+#: included, under load 15-20, 2026-12-03); the dino photo test shares nothing with test_photo's bowls.
+_NB = "test_notebooks.py::test_notebook_executes"
 UNIT_SECONDS = {
-    "test_notebooks.py::test_notebook_executes[03_voxel_carving-solutions]": 30,
-    "test_notebooks.py::test_notebook_executes[04_voxel_coloring-solutions]": 26,
-    "test_notebooks.py::test_notebook_executes[03_voxel_carving-student]": 25,
-    "test_notebooks.py::test_notebook_executes[04_voxel_coloring-student]": 25,
-    "test_notebooks.py::test_notebook_executes": 15,
-    "test_notebooks.py::test_calibration_exercise_survives_a_click_between_cells": 15,
-    "test_photo.py::test_dino_photo_keeps_the_silhouettes": 75,
+    f"{_NB}[03_voxel_carving-solutions]": 29, f"{_NB}[03_voxel_carving-student]": 25,
+    f"{_NB}[04_voxel_coloring-solutions]": 24, f"{_NB}[04_voxel_coloring-student]": 23,
+    f"{_NB}[06_live_capture-solutions]": 17, f"{_NB}[06_live_capture-student]": 17,
+    f"{_NB}[05_surface_repair_and_measures-solutions]": 15, f"{_NB}[05_surface_repair_and_measures-student]": 16,
+    f"{_NB}[01_calibration-solutions]": 12, f"{_NB}[01_calibration-student]": 13,
+    f"{_NB}[02_background_and_silhouettes-solutions]": 13, f"{_NB}[02_background_and_silhouettes-student]": 12,
+    _NB: 15,  # a notebook added later
+    "test_notebooks.py::test_calibration_exercise_survives_a_click_between_cells": 10,
+    "test_photo.py::test_dino_photo_keeps_the_silhouettes": 80,
 }
 
 
