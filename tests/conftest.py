@@ -55,16 +55,20 @@ def small_session(tmp_path_factory):
 # (they share no module fixture with the rest of their file), so that test_notebooks' twelve notebook runs
 # (about 220 s together) spread over both workers instead of holding one.
 # FILE_SECONDS: CPU seconds (user + sys, children included) of a file alone, its module fixtures included, less
-# its tests that are units of their own; measured per test by issue 24's helpers on 2026-12-03 under load
-# (test_trust 100, test_photo 123 of which the dino test 76-84, test_api's snippet test 20) or, where no CPU
-# figure exists, the closing note's slowest tests summed per file.  The files not named follow, most tests
-# first.  Refresh them when they move (`pytest --durations=0`, or CPU per test).
+# its tests that are units of their own; measured per test by issue 24's helper `suite` on 2026-12-03, one
+# process, under a load of 13-21 (the dino photo test 59 s, the rest of test_photo 28 s; the notebooks' runs
+# 12-29 s, kernels included) or, for the files it did not reach (test_poses*, test_sweep, test_hostile_results,
+# test_pipeline, test_real_dino, the JupyterLab test, test_agreement_limits), the closing note's idle seconds.
+# The files not named follow, most tests first.  Refresh them when they move (`pytest --durations=0`, or CPU
+# per test).
 FILE_SECONDS = {
-    "test_trust.py": 100, "test_poses.py": 70, "test_sweep.py": 60, "test_photo.py": 45, "test_hostile_results.py": 45,
-    "test_pipeline.py": 40, "test_coloring.py": 35, "test_coloring_robust.py": 33, "test_backdrop.py": 30,
-    "test_capture.py": 30, "test_camera_formats.py": 30, "test_real_dino.py": 30, "test_benchmarks.py": 25,
-    "test_notebook_jupyterlab.py": 25, "test_agreement_limits.py": 25, "test_poses_faces.py": 20, "test_api.py": 20,
-    "test_notebooks.py": 3,
+    "test_trust.py": 105, "test_coloring_robust.py": 70, "test_poses.py": 70, "test_sweep.py": 60, "test_api.py": 50,
+    "test_hostile_results.py": 45, "test_examples.py": 45, "test_pipeline.py": 40, "test_coloring.py": 40,
+    "test_capture.py": 35, "test_backdrop.py": 35, "test_real_dino.py": 30, "test_photo.py": 28,
+    "test_calibration.py": 28, "test_notebook_jupyterlab.py": 25, "test_agreement_limits.py": 25, "test_band.py": 24,
+    "test_benchmarks.py": 20, "test_poses_faces.py": 20, "test_calibration_real.py": 18,
+    "test_finish_deviation.py": 18, "test_hostile_calibration.py": 16, "test_field.py": 14,
+    "test_camera_formats.py": 11, "test_notebooks.py": 3,
 }
 #: Tests scheduled as units of their own (node id from the file's name on; or up to a "[": each of its
 #: parametrizations) -> CPU seconds of one.  The notebooks: each runs in its own kernel (measured CPU, kernel
@@ -73,13 +77,13 @@ _NB = "test_notebooks.py::test_notebook_executes"
 UNIT_SECONDS = {
     f"{_NB}[03_voxel_carving-solutions]": 29, f"{_NB}[03_voxel_carving-student]": 25,
     f"{_NB}[04_voxel_coloring-solutions]": 24, f"{_NB}[04_voxel_coloring-student]": 23,
-    f"{_NB}[06_live_capture-solutions]": 17, f"{_NB}[06_live_capture-student]": 17,
+    f"{_NB}[06_live_capture-solutions]": 17, f"{_NB}[06_live_capture-student]": 13,
     f"{_NB}[05_surface_repair_and_measures-solutions]": 15, f"{_NB}[05_surface_repair_and_measures-student]": 16,
     f"{_NB}[01_calibration-solutions]": 12, f"{_NB}[01_calibration-student]": 13,
     f"{_NB}[02_background_and_silhouettes-solutions]": 13, f"{_NB}[02_background_and_silhouettes-student]": 12,
     _NB: 15,  # a notebook added later
-    "test_notebooks.py::test_calibration_exercise_survives_a_click_between_cells": 10,
-    "test_photo.py::test_dino_photo_keeps_the_silhouettes": 80,
+    "test_notebooks.py::test_calibration_exercise_survives_a_click_between_cells": 13,
+    "test_photo.py::test_dino_photo_keeps_the_silhouettes": 60,
 }
 
 
