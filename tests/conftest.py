@@ -58,20 +58,21 @@ def small_session(tmp_path_factory):
 # its tests that are units of their own; measured per test by issue 24's helper `suite` on 2026-12-03, one
 # process, under a load of 13-21 (the dino photo test 59 s, the rest of test_photo 28 s; the notebooks' runs
 # 12-29 s, kernels included; test_hostile_kill 60 s, which the table did not name; test_hostile_results 7 s once
-# the hostile tests' shared session is made, 12 s, by whichever comes first) or, for the files it did not reach
-# (test_poses*, test_sweep, test_pipeline, test_real_dino, the JupyterLab test) and test_agreement_limits (4 s CPU,
-# 25 s idle: its simulated capture waits), the closing note's idle seconds.
+# the hostile tests' shared session is made, 12 s, by whichever comes first; test_poses_faces 14 s once
+# test_poses has made the bumped render they share) or, for test_sweep (its Dask cluster) and
+# test_agreement_limits (4 s CPU, 25 s idle: its simulated capture waits), the closing note's idle seconds.
 # The files not named follow, most tests first.  Refresh them when they move (`pytest --durations=0`, or CPU
 # per test).
 FILE_SECONDS = {
-    "test_trust.py": 105, "test_coloring_robust.py": 70, "test_poses.py": 70, "test_sweep.py": 60,
-    "test_hostile_kill.py": 60, "test_api.py": 50, "test_examples.py": 45, "test_hostile_results.py": 15,
-    "test_hostile_fuzz.py": 14, "test_hostile_outputs.py": 14, "test_pipeline.py": 40, "test_coloring.py": 40,
-    "test_capture.py": 35, "test_backdrop.py": 35, "test_real_dino.py": 30, "test_photo.py": 28,
-    "test_calibration.py": 28, "test_notebook_jupyterlab.py": 25, "test_agreement_limits.py": 25, "test_band.py": 24,
-    "test_benchmarks.py": 20, "test_poses_faces.py": 20, "test_calibration_real.py": 18,
-    "test_finish_deviation.py": 18, "test_hostile_calibration.py": 17, "test_field.py": 14,
-    "test_camera_formats.py": 11, "test_notebooks.py": 3,
+    "test_trust.py": 105, "test_coloring_robust.py": 70, "test_sweep.py": 60, "test_hostile_kill.py": 60,
+    "test_poses.py": 57, "test_api.py": 50, "test_examples.py": 45, "test_coloring.py": 40, "test_pipeline.py": 39,
+    "test_capture.py": 35, "test_backdrop.py": 35, "test_notebook_jupyterlab.py": 29, "test_real_dino.py": 29,
+    "test_photo.py": 28, "test_calibration.py": 28, "test_agreement_limits.py": 25, "test_band.py": 24,
+    "test_joint_silhouettes.py": 21, "test_benchmarks.py": 20, "test_calibration_real.py": 18,
+    "test_finish_deviation.py": 18, "test_hostile_calibration.py": 17, "test_sample_session.py": 17,
+    "test_hostile_results.py": 15, "test_surface_aaa.py": 15, "test_hostile_fuzz.py": 14,
+    "test_hostile_outputs.py": 14, "test_field.py": 14, "test_poses_faces.py": 14, "test_camera_formats.py": 11,
+    "test_notebooks.py": 3,
 }
 #: Tests scheduled as units of their own (node id from the file's name on; or up to a "[": each of its
 #: parametrizations) -> CPU seconds of one.  The notebooks: each runs in its own kernel (measured CPU, kernel
