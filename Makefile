@@ -51,8 +51,9 @@ demo: $(STAMP)
 	$(BIN)/organlab reconstruct sample_sessions/aaa_phantom --out demo_out --voxel-size 1 --picture
 
 # The suite on TEST_WORKERS processes (pytest-xdist; the machine's 2 cores by default), each test file whole on one
-# of them (--dist loadfile: a file's module fixtures are made once), the longest files first (tests/conftest.py's
-# FILE_SECONDS; --no-loadscope-reorder keeps that order); it ends with the 15 slowest tests.  TEST_WORKERS=0 runs it in this process.
+# of them (--dist loadfile: a file's module fixtures are made once) but for the few long tests that share none
+# (each notebook's run: tests/conftest.py's UNIT_SECONDS), the longest first (conftest's FILE_SECONDS;
+# --no-loadscope-reorder keeps that order); it ends with the 15 slowest tests.  TEST_WORKERS=0 runs it in this process.
 TEST_WORKERS ?= 2
 
 test: $(STAMP)
