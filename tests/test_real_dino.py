@@ -267,6 +267,41 @@ def test_dino_finished_surface_stays_on_the_raw(backdrop):
         assert like.min() >= -0.002, (mode, like.round(4))
 
 
+@needs_data
+@pytest.mark.slow
+def test_dino_authors_masks_hole_the_shadowed_creases(dino, backdrop):
+    """Most of what separates us from the like-with-like target is holes in the authors' masks, not the voxel.  Their
+    grey 0.19 and 10 px closing leave holes in the shadowed creases on the dino's body in dinoSR0002-0005 (between the
+    spines, the neck fold: solid plaster at grey about 0.11, against the backdrop's 0); their hull carves those rays
+    and so reproduces its own holes.  Our keyed silhouettes keep the creases; scored against the authors' masks with
+    those four views' holes filled, the default finished surface with the joint step meets 0.985 within 0.0002."""
+    from scipy import ndimage
+
+    data, masks, cams = dino
+    imgs = [data.images[i] for i in np.nonzero(data.good)[0]]
+    plain = middlebury_silhouettes(imgs, dilate_px=10, erode_px=10)
+    rec = backdrop["auto"]["rec"]
+    creases = [1, 2, 3, 4]  # dinoSR0002-0005 (dinoSR0001's and 0016's holes include the gap between leg and body)
+    for i in creases:
+        hole = ndimage.binary_fill_holes(plain[i]) & ~plain[i]
+        ours = ndimage.binary_fill_holes(rec.silhouettes[i].mask) & ~rec.silhouettes[i].mask
+        grey = imgs[i].astype(float) @ [0.299, 0.587, 0.114] / 255
+        # measured holes 2 669 / 3 076 / 2 925 / 1 508 px (ours 9 / 8 / 13 / 9); their grey median 0.11-0.12, the
+        # image border's 0.0: dark specimen, not backdrop
+        assert hole.sum() > 1000 and ours.sum() < 50, (i, hole.sum(), ours.sum())
+        assert 0.06 < np.median(grey[hole]) < 0.19 and np.median(grey[:, :5]) < 0.02
+    filled = [ndimage.binary_fill_holes(m) if i in creases else m for i, m in enumerate(masks)]
+    filled_plain = [ndimage.binary_fill_holes(m) if i in creases else m for i, m in enumerate(plain)]
+    renders = [model_mask(rec.mesh, c) for c in cams]
+    grown = middlebury_silhouettes([r.astype(np.uint8) * 255 for r in renders], threshold=0.5)
+    like = np.mean([_iou(g, m)[0] for g, m in zip(grown, filled)])
+    plain_iou = np.mean([_iou(r, m)[0] for r, m in zip(renders, filled_plain)])
+    print(f"finished, joint auto, against the authors' masks with dinoSR0002-0005's holes filled: like with like "
+          f"{like:.4f}, plain {plain_iou:.4f}")
+    # measured 0.9848 like with like (0.9805 against their holed masks), plain 0.9816 (0.9755); joint off 0.9829, 0.9782
+    assert like > 0.984 and like > backdrop["auto"]["finished"][0].mean() + 0.003
+    assert plain_iou > 0.980
+
 def test_write_middlebury_session(tmp_path):
     """A set's good views become a backdrop session that organlab reads back: same cameras, roi = bbox + margin."""
     import cv2
