@@ -212,7 +212,8 @@ def _closed_around(img, level, centre):
         ct = pts[offs[k] : offs[k + 1]]
         if len(ct) < 4 or np.abs(ct[0] - ct[-1]).max() > 1e-9 or not points_in_poly(centre, ct)[0]:
             continue
-        area = 0.5 * abs(np.dot(ct[:, 0], np.roll(ct[:, 1], 1)) - np.dot(ct[:, 1], np.roll(ct[:, 0], 1)))
+        x, y = ct[:, 0], ct[:, 1]  # np.roll(., 1) as a concatenation (the same array; np.roll's overhead was 5 %)
+        area = 0.5 * abs(np.dot(x, np.concatenate((y[-1:], y[:-1]))) - np.dot(y, np.concatenate((x[-1:], x[:-1]))))
         if best is None or area < best[1]:
             best = (ct, area)
     return best
@@ -362,14 +363,19 @@ def _iso_contours(img, level):
     return pts, offs
 
 
+def _cross(a, b):
+    """``np.cross(a, b)`` of two (3,) vectors, the same products and differences, without its overhead."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 class _Plane:
     """Pixels ``g x g`` (mm, about ``c``) of the plane through ``c`` perpendicular to ``t``."""
 
     def __init__(self, c, t, half, px):
         a = np.eye(3)[np.argmin(np.abs(t))]
-        e1 = np.cross(t, a)
+        e1 = _cross(t, a)
         self.e1 = e1 / np.linalg.norm(e1)
-        self.e2 = np.cross(t, self.e1)
+        self.e2 = _cross(t, self.e1)
         self.c, self.half, self.px = c, half, px
         self.g = np.arange(-half, half + px / 2, px)
 
