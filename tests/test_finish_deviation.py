@@ -1,24 +1,167 @@
-"""Issue 21: the finished surface stays within 1 voxel of the raw one (``finish_surface``'s ``deviation``).
+"""Issue 21 part 2: finish_surface stays on the raw surface and states how far it lies from it.
 
-A ball with thin fins (half a voxel to a voxel thick) at coarse voxels: the remesher's sliver clean-up flattens
-the fins' knife edges (faces folded back by more than 150 degrees, where no triangle of 20 degrees fits) and cuts
-out and fills what it still cannot fix, shaving the fins' tips by up to 3.5 voxels.  The last step
-(``stay_on_data``, :mod:`organlab.surface._guard`) puts the lost raw points back as vertices and pulls the
-vertices still more than 0.9 voxel off back onto the raw surface, keeping the smallest angle.
+The figures are checked against a brute-force closest point (every face of the other surface), on
+specimens the defaults never saw: a ball (radius 12 mm) alone, with a fin thinner than the remesh edge
+(1.2 mm thick, 1 mm voxels, 1.5 mm edges), with a tilted pin 1.4 mm across, and with a curved shell
+0.9 mm thick over its top.  Before the adaptive remeshing the fin was mostly removed (raw to finished:
+mean 0.57, max 8.7 voxels); now every shape is within the issue's 0.25 voxel mean and 1 voxel max
+(measured: ball 0.019 / 0.09, fin 0.022 / 0.49, pin 0.021 / 0.32, shell 0.031 / 0.48) with every angle
+>= 20 degrees (38.0, 22.7, 29.1, 21.7).
 """
 
 import numpy as np
 import pytest
 
-import organlab as ol
-from organlab.surface._deviation import surface_deviation
-from organlab.surface._repair import repair_mesh
+from organlab.grid import VoxelGrid
+from organlab.surface import FinishedSurface, closest_points, finish_surface, mesh_from_field, surface_deviation
+from organlab.surface._deviation import _tri_closest
 
+
+def _field(kind):
+    grid = VoxelGrid(origin=(-20.0, -20.0, -20.0), voxel_size=1.0, shape=(41, 41, 41))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    d = np.sqrt(x**2 + y**2 + z**2) - 12.0  # signed distance to the ball, mm
+    if kind in ("fin", True):  # a plate 1.2 mm thick, 16 mm wide, out to x = 18 mm
+        d = np.minimum(d, np.maximum.reduce([np.abs(z) - 0.6, np.abs(y) - 8.0, x - 18.0, -x]))
+    elif kind == "pin":  # a rod 1.4 mm across, tilted, out to 19 mm from the centre
+        a = np.array([0.8, 0.36, 0.48]) / np.linalg.norm([0.8, 0.36, 0.48])
+        s = x * a[0] + y * a[1] + z * a[2]
+        r = np.sqrt(np.maximum(x**2 + y**2 + z**2 - s**2, 0.0))
+        d = np.minimum(d, np.maximum(r - 0.7, np.maximum(s - 19.0, -s)))
+    elif kind == "shell":  # a spherical cap 0.9 mm thick (radius 17 mm about (0, 0, -4)) above z = 6 mm
+        rr = np.sqrt(x**2 + y**2 + (z + 4.0) ** 2)
+        d = np.minimum(d, np.maximum(np.abs(rr - 17.0) - 0.45, 6.0 - z))
+    return np.clip(0.5 - d, 0.0, 1.0).astype(np.float32), grid  # a coverage-like field, its 0.5 level at d = 0
+
+
+def _brute(points, mesh):
+    v, f = mesh.vertices, mesh.faces
+    return np.array([np.sqrt(((_tri_closest(np.repeat(p[None], len(f), 0), v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]) - p) ** 2)
+                             .sum(1)).min() for p in points])
+
+
+def test_closest_points_match_a_brute_force_search():
+    field, grid = _field("fin")
+    raw = mesh_from_field(field, grid)
+    rng = np.random.default_rng(1)
+    p = raw.vertices[rng.integers(0, len(raw.vertices), 200)] + rng.normal(0.0, 0.4, (200, 3))
+    _, d = closest_points(p, raw)
+    b = _brute(p, raw)
+    # never nearer than the true nearest point; among 6 candidate triangles by centroid, a few points by
+    # the fin's small marching-cubes triangles get a farther one (measured: 0.0041 mm at most, a few of 200)
+    assert np.all(d >= b - 1e-9)
+    np.testing.assert_allclose(d, b, atol=0.01)
+    assert np.mean(np.abs(d - b) < 1e-9) > 0.9
+
+
+SHAPES = ("ball", "fin", "pin", "shell")
+
+
+@pytest.fixture(scope="module")
+def finished():
+    out = {}
+    for kind in SHAPES:
+        field, grid = _field(kind)
+        raw = mesh_from_field(field, grid)
+        out[kind] = raw, finish_surface(raw, voxel_size=1.0)
+    return out
+
+
+def test_finish_surface_is_typed_and_reports_its_deviation(finished):
+    raw, res = finished["ball"]
+    assert isinstance(res, FinishedSurface)
+    d = res.to_dict()
+    assert set(d) >= {"steps", "raw", "final", "watertight", "volume_change_pct", "deviation"}
+    mesh, report = res  # the former (Mesh, dict) form
+    assert mesh is res.mesh and report == d
+    # the figures are what an independent search gives (finished vertices to the raw surface)
+    sub = res.mesh.vertices[::25]
+    brute = _brute(sub, raw)
+    assert res.deviation["finished_to_raw"]["max_voxels"] >= brute.max() - 1e-6
+    assert res.deviation == surface_deviation(res.mesh, raw, voxel_size=1.0)
+
+
+def _views():
+    """Three perspective views along the axes, 6 px per mm at the centre (the fin seen face-on first)."""
+    from organlab.camera import Camera
+
+    K = np.array([[900.0, 0.0, 160.0], [0.0, 900.0, 120.0], [0.0, 0.0, 1.0]])
+    rots = (np.eye(3), np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]), np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]))
+    return [Camera(K, np.zeros(5), R, np.array([0.0, 0.0, 150.0]), (320, 240)) for R in rots]
+
+
+@pytest.mark.parametrize("kind", SHAPES)
+def test_thin_parts_stay_on_the_raw_surface(finished, kind):
+    from organlab.raster import model_mask
+
+    raw, res = finished[kind]
+    assert res.watertight and res.final["min_angle_deg"] >= 20.0  # the FEA promises (measured 21.7-38.0)
+    assert abs(res.volume_change_pct) < 0.01  # the raw volume is restored (measured < 1e-4 %)
+    # issue 21's bounds, by brute force both ways on every 5th vertex (measured: raw to finished max 0.09-0.43
+    # voxel, finished to raw max 0.05-0.15; the mean 0.02-0.03)
+    r2f, f2r = _brute(raw.vertices[::5], res.mesh), _brute(res.mesh.vertices[::5], raw)
+    assert r2f.mean() < 0.25 and f2r.mean() < 0.25
+    assert r2f.max() < 1.0 and f2r.max() < 1.0
+    # the report's figures cover what the brute force found (all vertices, and face centres)
+    assert res.deviation["raw_to_finished"]["max_voxels"] >= r2f.max() - 1e-3
+    assert res.deviation["max_voxels"] < 1.0 and res.deviation["mean_voxels"] < 0.25
+    # the projections against the raw surface's own: each flipped boundary pixel counts here (the plain ball:
+    # 21 px lost, 26 gained of 16 300, IoU 0.997), so this is stricter than the issue's change of IoU
+    # against a silhouette.  Measured 0.9956-0.9977, except where a thin part's rim, a crease of the raw
+    # surface, is seen face-on: the fin 0.979 (its far end, 1.2 mm thick, is cut by 0.3 mm) and the shell from
+    # below 0.990 (its cut edge): the remesher does not follow feature lines (snapping ridge vertices onto the
+    # raw creases was tried: fin 0.981, shell 0.995, but slivers on the dino)
+    missed = {("fin", 0): 0.975, ("shell", 0): 0.985}
+    for i, cam in enumerate(_views()):
+        a, b = model_mask(raw, cam, (240, 320)), model_mask(res.mesh, cam, (240, 320))
+        iou = (a & b).sum() / (a | b).sum()
+        assert iou > missed.get((kind, i), 0.995), (kind, i, iou)
+
+
+def test_the_fin_was_cut_before_and_is_kept_now(finished):
+    raw, res = finished["fin"]
+    # the fin's far end (x = 18 mm) is still there (before issue 21: cut back by 8.7 voxels)
+    assert res.mesh.vertices[:, 0].max() > 17.5
+    # the fin (its corner where it leaves the ball included) is where the surface departs most (measured 0.49
+    # voxel there, 0.31 on the ball), and its worst point is within a voxel of the raw
+    _, d = closest_points(raw.vertices, res.mesh)
+    fin = (np.abs(raw.vertices[:, 2]) < 1.0) & (raw.vertices[:, 0] > 10.0)
+    assert d[fin].max() == pytest.approx(d.max()) and d.max() < 1.0
+
+
+def test_the_report_states_the_deviation_and_the_worst_view_iou_change(small_session):
+    from organlab.pipeline import reconstruct
+
+    rec = reconstruct(small_session, voxel_size=2.0)
+    dev = rec.report["surface"]["deviation"]
+    rows = [v["agreement"] for v in rec.report["views"]]
+    change = [r["iou"] - r["raw_iou"] for r in rows]
+    k = int(np.argmax(np.abs(change)))
+    assert dev["worst_view_iou_change"] == pytest.approx(change[k], abs=1e-5)
+    assert dev["worst_view"] == rec.report["views"][k]["image"]
+    # the raw IoU is the raw mesh's own: re-rendered here
+    from organlab.raster import model_mask
+
+    cam, sil = rec.cameras[k], np.asarray(rec.silhouettes[k].coverage) >= 0.5
+    r = model_mask(rec.raw_mesh, cam, sil.shape)
+    assert rows[k]["raw_iou"] == pytest.approx((r & sil).sum() / (r | sil).sum(), abs=1e-9)
+    # 6 views of the sample at 2 mm: measured mean 0.021, max 0.29 voxel, worst view IoU change -0.0011
+    # (before issue 21's adaptive remeshing: 0.064, 1.99 voxels, -0.0089, the 3 mm edge rounded the neck off)
+    assert 0 < dev["mean_voxels"] < 0.25 and dev["max_voxels"] < 1.0
+    assert abs(dev["worst_view_iou_change"]) < 0.002
+
+
+# ------------------------------------------------------------------ the last step: stay_on_data (_guard.py)
+# A ball with thin fins (half a voxel to a voxel thick) at coarse voxels: the remesher's sliver clean-up flattens
+# the fins' knife edges (faces folded back by more than 150 degrees, where no triangle of 20 degrees fits) and
+# cuts out and fills what it still cannot fix, without projecting back: the fins' tips were shaved by up to 3.5
+# voxels.  finish_surface's last step (``stay_on_data``, organlab/surface/_guard.py) puts the lost raw points back
+# as vertices and pulls the vertices still more than 0.9 voxel off back onto the raw surface, keeping the angle.
 
 def _finned_ball(voxel_size, seed):
     """A 15 mm ball with three half-discs of radius 24 mm, 1-2 voxels thick (random planes), and its grid."""
     n = int(60 / voxel_size) + 1
-    grid = ol.VoxelGrid(origin=(-30.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
+    grid = VoxelGrid(origin=(-30.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
     body = x**2 + y**2 + z**2 <= 15.0**2
     rng = np.random.default_rng(seed)
@@ -29,7 +172,7 @@ def _finned_ball(voxel_size, seed):
         e /= np.linalg.norm(e)
         body |= ((np.abs(x * d[0] + y * d[1] + z * d[2]) <= rng.uniform(0.5, 1.0) * voxel_size)
                  & (x**2 + y**2 + z**2 <= 24.0**2) & (x * e[0] + y * e[1] + z * e[2] > 0))
-    return ol.mesh_from_field(body, grid)
+    return mesh_from_field(body, grid)
 
 
 # measured (before -> after the last step): seed 0 at 2 mm 3.4555 -> 0.8392 voxels, seed 1 at 1.5 mm (a
@@ -37,12 +180,14 @@ def _finned_ball(voxel_size, seed):
 @pytest.mark.parametrize("voxel_size, seed", [(2.0, 0), (1.5, 1)])
 def test_finished_fins_stay_within_a_voxel(voxel_size, seed):
     raw = _finned_ball(voxel_size, seed)
-    fin = ol.finish_surface(raw, voxel_size=voxel_size)
+    fin = finish_surface(raw, voxel_size=voxel_size)
     guard = [s for s in fin.steps if s["step"] == "stay_on_data"]
     # the case is real: without the last step the finished surface was more than a voxel off the raw one
     assert len(guard) == 1 and guard[0]["max_voxels"][0] > 1.0, fin.steps
     assert guard[0]["vertices_inserted"] > 0
     # the promise, measured again here independently of the report (against the raw surface less its specks)
+    from organlab.surface._repair import repair_mesh
+
     repaired, _ = repair_mesh(raw, speck_mm=3.0 * voxel_size)
     dev = surface_deviation(fin.mesh, repaired, voxel_size=voxel_size)
     assert dev["max_voxels"] < 1.0 and dev["mean_voxels"] < 0.25, dev
@@ -57,8 +202,8 @@ def test_finished_fins_stay_within_a_voxel(voxel_size, seed):
 
 def test_within_a_voxel_already_is_left_alone():
     """A plain ball (1.5 mm voxels) is within a voxel after remeshing: no last step, the same surface."""
-    grid = ol.VoxelGrid(origin=(-24.0,) * 3, voxel_size=1.5, shape=(33, 33, 33))
+    grid = VoxelGrid(origin=(-24.0,) * 3, voxel_size=1.5, shape=(33, 33, 33))
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
-    fin = ol.finish_surface(ol.mesh_from_field(x**2 + y**2 + z**2 <= 20.0**2, grid), voxel_size=1.5)
+    fin = finish_surface(mesh_from_field(x**2 + y**2 + z**2 <= 20.0**2, grid), voxel_size=1.5)
     assert fin.deviation["max_voxels"] < 1.0
     assert not [s for s in fin.steps if s["step"] == "stay_on_data"]
