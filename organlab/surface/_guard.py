@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._deviation import _Surface
+from ._deviation import _Surface, surface_deviation
 from ._mesh import Mesh
-from ._remesh import _face_min_angles
+from ._quality import mesh_quality
+from ._remesh import _face_min_angles, fix_slivers
 
 #: Vertices farther than this many voxels from the other surface are moved (a margin under the promised 1).
 LIMIT_VOXELS = 0.9
@@ -62,8 +63,7 @@ def pull_back(mesh: Mesh, reference: _Surface, *, voxel_size: float, min_angle: 
             # one raw point per vertex: the farthest one it lost
             order = np.argsort(din[lost])
             target[vid[order]] = p[order]
-        move = np.nonzero(far | (np.arange(len(V)) < 0))[0]
-        move = np.union1d(move, vid if len(lost) else np.empty(0, dtype=np.int64))
+        move = np.union1d(np.nonzero(far)[0], vid if len(lost) else np.empty(0, dtype=np.int64))
         if not len(move):
             break
         # the move spread over the rings around (halved per ring) so that the neighbours follow and the
@@ -112,8 +112,6 @@ def insert_lost(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: fl
     """``(Mesh, inserted)``: the raw surface's points the finished one lost (farther than :data:`LIMIT_VOXELS`)
     put back as vertices (the finished face closest to each split in three at it), then the local clean-up
     (:func:`._remesh.fix_slivers`: flips, collapses, relaxation onto ``reference``) over the whole surface."""
-    from ._remesh import fix_slivers
-
     ref = _Surface(reference)
     lim = LIMIT_VOXELS * float(voxel_size)
     out, inserted = mesh, 0
@@ -149,9 +147,6 @@ def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: f
     surface lies within 1 voxel of ``reference`` both ways; the closest of the rounds' surfaces (by the larger
     maximum, :func:`._deviation.surface_deviation`), or ``mesh`` itself when none is closer or none keeps
     ``min_angle`` (or ``mesh``'s own smallest angle, if lower)."""
-    from ._deviation import surface_deviation
-    from ._quality import mesh_quality
-
     def worst(m):
         return surface_deviation(m, reference, voxel_size=voxel_size, raw_surface=ref)["max_voxels"]
 
