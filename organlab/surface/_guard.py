@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._deviation import _Surface, surface_deviation
+from ._deviation import _Surface, _surface, surface_deviation
 from ._mesh import Mesh
 from ._quality import mesh_quality
 from ._remesh import _face_min_angles, fix_slivers
@@ -112,7 +112,7 @@ def insert_lost(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: fl
     """``(Mesh, inserted)``: the raw surface's points the finished one lost (farther than :data:`LIMIT_VOXELS`)
     put back as vertices (the finished face closest to each split in three at it), then the local clean-up
     (:func:`._remesh.fix_slivers`: flips, collapses, relaxation onto ``reference``) over the whole surface."""
-    ref = _Surface(reference)
+    ref = _surface(reference)  # the raw surface's tree, built once per finishing (see ._deviation)
     lim = LIMIT_VOXELS * float(voxel_size)
     out, inserted = mesh, 0
     for _ in range(int(rounds)):
@@ -142,17 +142,19 @@ def insert_lost(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: fl
 
 
 def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: float, target_mm: float,
-                 rounds: int = 4):
-    """``(Mesh, record)``: :func:`insert_lost` then :func:`pull_back`, ``rounds`` times at most, until the
+                 rounds: int = 4, deviation: dict | None = None):
+    """``(Mesh, record, deviation)``: :func:`insert_lost` then :func:`pull_back`, ``rounds`` times at most, until the
     surface lies within 1 voxel of ``reference`` both ways; the closest of the rounds' surfaces (by the larger
     maximum, :func:`._deviation.surface_deviation`), or ``mesh`` itself when none is closer or none keeps
-    ``min_angle`` (or ``mesh``'s own smallest angle, if lower)."""
-    def worst(m):
-        return surface_deviation(m, reference, voxel_size=voxel_size, raw_surface=ref)["max_voxels"]
+    ``min_angle`` (or ``mesh``'s own smallest angle, if lower).  ``deviation``: ``mesh``'s, if known; the one
+    returned is the result's."""
+    def measure(m):
+        return surface_deviation(m, reference, voxel_size=voxel_size, raw_surface=ref)
 
-    ref = _Surface(reference)
+    ref = _surface(reference)  # the raw surface's tree, built once per finishing (see ._deviation)
     floor = min(float(min_angle), float(mesh_quality(mesh)["min_angle_deg"]))
-    best, best_max = mesh, worst(mesh)
+    best_dev = measure(mesh) if deviation is None else deviation
+    best, best_max = mesh, best_dev["max_voxels"]
     before = best_max
     m, inserted, pulled, refused, used = mesh, 0, 0, 0, 0
     for r in range(int(rounds)):
@@ -166,8 +168,10 @@ def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: f
         q = mesh_quality(m)
         ok = (not q["boundary_edges"] and not q["nonmanifold_edges"] and not q["nonmanifold_vertices"]
               and q["min_angle_deg"] >= floor - 1e-9)
-        now = worst(m)
-        if ok and now < best_max:
-            best, best_max, used = m, now, r + 1
+        if not ok:
+            continue
+        dev = measure(m)
+        if dev["max_voxels"] < best_max:
+            best, best_max, best_dev, used = m, dev["max_voxels"], dev, r + 1
     return best, {"step": "stay_on_data", "max_voxels": [before, best_max], "rounds": used,
-                  "vertices_inserted": inserted, "vertices_moved": pulled, "moves_refused": refused}
+                  "vertices_inserted": inserted, "vertices_moved": pulled, "moves_refused": refused}, best_dev

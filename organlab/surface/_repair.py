@@ -600,11 +600,11 @@ def finish_surface(
     deviation = surface_deviation(out, repaired, voxel_size=float(voxel_size))
     if repair and remesh is not None and deviation["max_voxels"] >= 1.0 and not final["boundary_edges"]:
         # issue 21's promise (1 voxel at most): the raw points the finishing lost put back, see ._guard
-        out, rec = keep_on_data(out, repaired, voxel_size=float(voxel_size), min_angle=min_angle,
-                                target_mm=min(float(remesh), MIN_EDGE_VOXELS * float(voxel_size)))
+        out, rec, deviation = keep_on_data(out, repaired, voxel_size=float(voxel_size), min_angle=min_angle,
+                                           target_mm=min(float(remesh), MIN_EDGE_VOXELS * float(voxel_size)),
+                                           deviation=deviation)
         steps.append(rec)
         final = mesh_quality(out)
-        deviation = surface_deviation(out, repaired, voxel_size=float(voxel_size))
     _SURFACES.clear()  # the closest-point trees (0.25 mm: ~100 MB for the raw surface) are not kept past the call
     _release_heap()
     if mesh.vertex_colors is not None:
