@@ -80,13 +80,15 @@ def pull_back(mesh: Mesh, reference: _Surface, *, voxel_size: float, min_angle: 
             fixed |= grow
         W = V + D
         step = fixed
+        near = np.nonzero(step[F].any(axis=1))[0]  # only the faces of moved vertices change
+        Fn = F[near]
         for attempt in range(30):
-            a = _face_min_angles(W, F)
-            flipped = np.einsum("ij,ij->i", _normals(W, F), start_normals) < 0.0
-            bad = ((a < min_angle) & (a < start_angles - 1e-9)) | flipped
+            a = _face_min_angles(W, Fn)
+            flipped = np.einsum("ij,ij->i", _normals(W, Fn), start_normals[near]) < 0.0
+            bad = ((a < min_angle) & (a < start_angles[near] - 1e-9)) | flipped
             if not bad.any():
                 break
-            vb = np.unique(F[bad])
+            vb = np.unique(Fn[bad])
             vb = vb[step[vb]]
             if not len(vb):  # cannot happen (only moved vertices change faces): give the round up
                 W, step = V.copy(), np.zeros(len(V), dtype=bool)
