@@ -1,13 +1,13 @@
-"""The finished surface's last step: the spots more than a voxel off the raw surface pulled back onto it.
+"""The finished surface's last step (``stay_on_data``): the spots more than a voxel off the raw surface put back.
 
-Remeshing with edges of 1.5 voxels and more (at 0.25 mm voxels the edge is the pixel footprint's 0.75 mm,
-3 voxels), its sliver clean-up (collapses, a patch cut out, filled and relaxed) and the volume offset leave a
-few vertices up to 2-2.5 voxels off the raw surface, and shave the tip of a part thinner than an edge (a raw
-vertex with no finished surface within a voxel).  :func:`pull_back` moves those vertices, and only those,
-onto the raw surface: a finished vertex too far out to its closest raw point; for a raw vertex the finished
-surface lost, the nearest vertex of the finished face closest to it onto it.  A move that would leave a face
-below the smallest angle (and worse than before) or turn a face over is halved, then dropped: the
-connectivity does not change, so the surface stays closed and manifold.
+The remesher's sliver step cuts out, fills and relaxes what it cannot fix and flattens knife edges, without
+projecting back onto the raw surface: on the 0.25 mm sample and the 1 mm dino that shaved thin parts by 2.2-2.5
+voxels (raw vertices with no finished surface within a voxel).  :func:`insert_lost` puts such raw points back as
+vertices (the closest finished face split in three at each, then :func:`._remesh.fix_slivers`);
+:func:`pull_back` moves the vertices still more than :data:`LIMIT_VOXELS` off onto the raw surface, spread over
+their rings; a move that would leave a face below the smallest angle (and worse than before) or turn a face over
+is halved, then refused.  :func:`keep_on_data` runs the rounds and keeps the closest surface that keeps the angle,
+closed and manifold.
 """
 
 from __future__ import annotations
