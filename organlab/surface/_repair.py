@@ -27,6 +27,7 @@ import numpy as np
 from ..errors import OrganlabError
 from ._deviation import _SURFACES, _Surface, _surface, surface_deviation
 from ._folds import fold_edges
+from ._guard import keep_on_data
 from ._mesh import Mesh
 from ._quality import _face_figures, _moved, boundary_loops, has_null_faces, mesh_quality, triangle_angles
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
@@ -597,6 +598,13 @@ def finish_surface(
             steps.append(rec)
     raw, final = mesh_quality(mesh), mesh_quality(out)
     deviation = surface_deviation(out, repaired, voxel_size=float(voxel_size))
+    if repair and remesh is not None and deviation["max_voxels"] >= 1.0 and not final["boundary_edges"]:
+        # issue 21's promise (1 voxel at most): the raw points the finishing lost put back, see ._guard
+        out, rec, deviation = keep_on_data(out, repaired, voxel_size=float(voxel_size), min_angle=min_angle,
+                                           target_mm=min(float(remesh), MIN_EDGE_VOXELS * float(voxel_size)),
+                                           deviation=deviation)
+        steps.append(rec)
+        final = mesh_quality(out)
     _SURFACES.clear()  # the closest-point trees (0.25 mm: ~100 MB for the raw surface) are not kept past the call
     _release_heap()
     if mesh.vertex_colors is not None:
