@@ -51,8 +51,7 @@ def _in_shadow(points, normals, light, specimen):
         return np.zeros(len(points), bool)
     o = points + 0.05 * normals + 0.05 * light
     d = np.broadcast_to(light, o.shape).copy()
-    t, _ = specimen._intersect(np.ascontiguousarray(o), d, t_max=None)
-    return np.isfinite(t)
+    return specimen._any_hit(np.ascontiguousarray(o), d)
 
 
 def render_hard(camera, *, supersample, specimen=None, plate=True):

@@ -71,6 +71,9 @@ class Painted(Specimen):
     def _intersect(self, o, d, t_max=None):
         return self.inner._intersect(o, d, t_max)
 
+    def _any_hit(self, o, d):
+        return self.inner._any_hit(o, d)
+
     def patches(self, points):
         """(N,) bool: the points under paint."""
         p = np.asarray(points, np.float64)

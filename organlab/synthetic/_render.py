@@ -50,10 +50,64 @@ def _camera_frame_rays(K_bytes, dist_bytes, size, supersample):
     pix = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
     dirs = np.empty((pix.shape[0], 3))
     for s in range(0, pix.shape[0], CHUNK):
-        # Camera.rays with the identity pose gives camera-frame directions.
-        dirs[s : s + CHUNK] = cam.rays(pix[s : s + CHUNK])[1]
+        # Camera.rays with the identity pose gives camera-frame directions; _normalized_chunk is its
+        # pixels_to_normalized (undistort's Newton steps, stopping for the whole chunk) compiled
+        xn = _normalized_chunk(pix[s : s + CHUNK], cam.K, cam.dist, 30) if np.any(cam.dist) else None
+        dirs[s : s + CHUNK] = cam.rays(pix[s : s + CHUNK])[1] if xn is None else _unit_rays(xn)
     dirs.setflags(write=False)
     return dirs
+
+
+def _unit_rays(xn):
+    """``Camera.rays``' directions for the identity pose from undistorted normalized coordinates ``(N, 2)``."""
+    d = np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d
+
+
+@numba.njit(cache=True)
+def _normalized_chunk(px, K, dist, iterations):
+    """:meth:`Camera.pixels_to_normalized` of pixels ``(N, 2)``: the same operations in the same order.
+
+    :func:`organlab.camera.undistort`'s Newton steps on every point, until the largest residual of
+    the chunk (NaN ignored) is below 1e-14 or ``iterations`` steps.
+    """
+    n = px.shape[0]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    xd = np.empty(n)
+    yd = np.empty(n)
+    for i in range(n):
+        yd[i] = (px[i, 1] - K[1, 2]) / K[1, 1]
+        xd[i] = (px[i, 0] - K[0, 2] - K[0, 1] * yd[i]) / K[0, 0]
+    xn = np.empty((n, 2))
+    xn[:, 0] = xd
+    xn[:, 1] = yd
+    for _ in range(iterations):
+        worst = 0.0
+        for i in range(n):
+            x = xn[i, 0]
+            y = xn[i, 1]
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            rx = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)) - xd[i]
+            ry = (y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y) - yd[i]
+            drad_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            a = radial + x * drad_dr2 * 2 * x + 2 * p1 * y + p2 * (2 * x + 4 * x)
+            b = x * drad_dr2 * 2 * y + 2 * p1 * x + p2 * 2 * y
+            c = y * drad_dr2 * 2 * x + p1 * 2 * x + 2 * p2 * y
+            d = radial + y * drad_dr2 * 2 * y + p1 * (2 * y + 4 * y) + 2 * p2 * x
+            det = a * d - b * c
+            if np.abs(det) < 1e-12:
+                det = 1e-12
+            xn[i, 0] = x - (d * rx - b * ry) / det
+            xn[i, 1] = y - (-c * rx + a * ry) / det
+            if abs(rx) > worst:
+                worst = abs(rx)
+            if abs(ry) > worst:
+                worst = abs(ry)
+        if worst < 1e-14:
+            break
+    return xn
 
 
 def camera_frame_rays(camera, supersample):
@@ -289,8 +343,7 @@ def coverage(camera, specimen, *, supersample):
         idx = box_candidates(centre, d, *specimen.bounds)
         if idx.size:
             di = d[idx]
-            t, _ = specimen._intersect(np.broadcast_to(centre, di.shape), di, t_max=None)
-            hit[idx] = np.isfinite(t)
+            hit[idx] = specimen._any_hit(np.broadcast_to(centre, di.shape), di)
         out[s : s + CHUNK, 0] = hit
     return downsample(out, camera.image_size, supersample)[:, :, 0].astype(np.float32)
 
@@ -364,6 +417,47 @@ def _star_r(phi, z, terms):
 
 
 @numba.njit(cache=True)
+def _star_r_only(phi, z, terms):
+    """``r(phi, z)`` alone: :func:`_star_r`'s first value (the same operations), without the derivatives."""
+    r = 0.0
+    for k in range(terms.shape[0]):
+        A = terms[k, 0]
+        zt = terms[k, 1]
+        z1 = terms[k, 2]
+        z2 = terms[k, 3]
+        pt = terms[k, 4]
+        m = terms[k, 5]
+        mu = terms[k, 6]
+        if zt == 0.0:
+            Z = 1.0
+        elif zt == 1.0:
+            if z <= z1 or z >= z2:
+                continue
+            L = z2 - z1
+            a = np.pi * (z - z1) / L
+            s = np.sin(a)
+            Z = s * s
+        else:
+            if z >= z2:
+                continue
+            if z <= z1:
+                Z = 1.0
+            else:
+                L = z2 - z1
+                q = 1.0 - (z - z1) / L
+                Z = q * q
+        if pt == 0.0:
+            P = 1.0
+        elif pt == 1.0:
+            P = np.cos(m * (phi - mu))
+        else:
+            c = np.cos(phi - mu)
+            P = np.exp(m * (c - 1.0))
+        r += A * Z * P
+    return r
+
+
+@numba.njit(cache=True)
 def star_radius(phi, z, terms):
     """Vectorized ``r, r_phi, r_z`` at ``(N,)`` angles (rad) and heights (mm)."""
     n = phi.shape[0]
@@ -380,18 +474,19 @@ def _star_f(ox, oy, oz, dx, dy, dz, t, terms):
     x = ox + t * dx
     y = oy + t * dy
     z = oz + t * dz
-    r, _, _ = _star_r(np.arctan2(y, x), z, terms)
-    return np.sqrt(x * x + y * y) - r
+    return np.sqrt(x * x + y * y) - _star_r_only(np.arctan2(y, x), z, terms)
 
 
 @numba.njit(cache=True)
-def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol):
+def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol, first=True):
     """First hit of rays with a star solid.
 
     Sphere tracing on ``f = rho - r(phi, z)`` with the Lipschitz bound
     ``lip`` (``f / lip`` never overshoots the surface), minimum step
     ``hmin``, then bisection to ``tol`` mm.  Returns ``t`` (inf: no hit) and
-    the kind of hit: 0 none, 1 side, 2 top cap, 3 bottom cap.
+    the kind of hit: 0 none, 1 side, 2 top cap, 3 bottom cap.  ``first=False``
+    (any hit, for shadow rays): the same steps, without the bisection, so
+    ``t`` is finite for exactly the same rays but not refined.
     """
     n = d.shape[0]
     t_out = np.full(n, np.inf)
@@ -450,6 +545,10 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol):
                 last = True
             fn = _star_f(ox, oy, oz, dx, dy, dz, tn, terms)
             if fn <= 0.0:
+                if not first:
+                    t_out[i] = tn
+                    kind[i] = 1
+                    break
                 lo = t
                 hi = tn
                 while hi - lo > tol:
