@@ -188,30 +188,57 @@ def board_hits(o, d, R_board, t_board, inner_corners, square, margin):
     """
     n_x, n_y = inner_corners
     s = float(square)
-    normal_w = R_board[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = np.einsum("ij,j->i", d, normal_w)
-        t = (t_board @ normal_w - np.einsum("ij,j->i", o, normal_w)) / denom
-    t = np.where(np.isfinite(t) & (t > 0), t, np.inf)
-    hit = np.isfinite(t)
-    p = o[hit] + t[hit, None] * d[hit]
-    local = np.einsum("ij,jk->ik", p - t_board, R_board)  # R_board.T @ (p - t_board)
-    x, y = local[:, 0], local[:, 1]
-    lo_x, hi_x = -s - margin, n_x * s + margin
-    lo_y, hi_y = -s - margin, n_y * s + margin
-    on = (x >= lo_x) & (x <= hi_x) & (y >= lo_y) & (y <= hi_y)
-    a = np.floor(x / s).astype(np.int64) + 1
-    b = np.floor(y / s).astype(np.int64) + 1
-    in_squares = (a >= 0) & (a <= n_x) & (b >= 0) & (b <= n_y)
-    is_black = in_squares & ((a + b) % 2 == 0)
-    g = np.where(is_black, BOARD_BLACK, BOARD_WHITE)
-    idx = np.flatnonzero(hit)
-    t_out = np.full(d.shape[0], np.inf)
-    t_out[idx[on]] = t[idx[on]]
+    R_board = np.ascontiguousarray(R_board, dtype=np.float64)
+    t_board = np.ascontiguousarray(t_board, dtype=np.float64)
+    normal_w = np.ascontiguousarray(R_board[:, 2])
+    t_dot_n = t_board @ normal_w
+    limits = np.array([-s - margin, n_x * s + margin, -s - margin, n_y * s + margin])
+    t_out, grey = _board_kernel(np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(d, dtype=np.float64),
+                                normal_w, t_dot_n, R_board, t_board, s, limits, int(n_x), int(n_y))
     albedo = np.zeros((d.shape[0], 3))
-    albedo[idx[on]] = g[on, None]
+    albedo[:] = grey[:, None]
     normal = np.broadcast_to(normal_w, d.shape)
     return t_out, albedo, normal
+
+
+@numba.njit(cache=True)
+def _board_kernel(o, d, nw, t_dot_n, R, tb, s, limits, n_x, n_y):
+    """Per ray: the board's ``t`` (inf: no hit) and grey albedo (0: no hit), the operations of the
+    vectorized version this replaced (einsum's sums in index order), ray by ray."""
+    n = d.shape[0]
+    t_out = np.full(n, np.inf)
+    grey = np.zeros(n)
+    for i in range(n):
+        denom = 0.0
+        on_ = 0.0
+        for j in range(3):
+            denom += d[i, j] * nw[j]
+        for j in range(3):
+            on_ += o[i, j] * nw[j]
+        t = (t_dot_n - on_) / denom
+        if not (np.isfinite(t) and t > 0):
+            continue
+        q0 = o[i, 0] + t * d[i, 0] - tb[0]
+        q1 = o[i, 1] + t * d[i, 1] - tb[1]
+        q2 = o[i, 2] + t * d[i, 2] - tb[2]
+        x = 0.0
+        x += q0 * R[0, 0]
+        x += q1 * R[1, 0]
+        x += q2 * R[2, 0]
+        y = 0.0
+        y += q0 * R[0, 1]
+        y += q1 * R[1, 1]
+        y += q2 * R[2, 1]
+        if not ((x >= limits[0]) and (x <= limits[1]) and (y >= limits[2]) and (y <= limits[3])):
+            continue
+        a = np.int64(np.floor(x / s)) + 1
+        b = np.int64(np.floor(y / s)) + 1
+        t_out[i] = t
+        if (a >= 0) and (a <= n_x) and (b >= 0) and (b <= n_y) and ((a + b) % 2 == 0):
+            grey[i] = BOARD_BLACK
+        else:
+            grey[i] = BOARD_WHITE
+    return t_out, grey
 
 
 @numba.njit(cache=True)
