@@ -444,8 +444,26 @@ def _star_r(phi, z, terms):
 
 
 @numba.njit(cache=True)
-def _star_r_only(phi, z, terms):
-    """``r(phi, z)`` alone: :func:`_star_r`'s first value (the same operations), without the derivatives."""
+def _same_z(terms):
+    """Per term, the index of the first term with the same sin^2 z profile (``ztype`` 1, same ``z1``, ``z2``), or -1."""
+    n = terms.shape[0]
+    src = np.full(n, -1, dtype=np.int64)
+    for k in range(n):
+        if terms[k, 1] == 1.0:
+            for j in range(k):
+                if src[j] == -1 and terms[j, 1] == 1.0 and terms[j, 2] == terms[k, 2] and terms[j, 3] == terms[k, 3]:
+                    src[k] = j
+                    break
+    return src
+
+
+@numba.njit(cache=True)
+def _star_r_only(phi, z, terms, zsrc, zbuf):
+    """``r(phi, z)`` alone: :func:`_star_r`'s first value (the same operations), without the derivatives.
+
+    ``zsrc`` (:func:`_same_z`): a term whose z profile an earlier term has takes that term's value
+    (the same number, kept in the scratch ``zbuf``) instead of computing the same sine again.
+    """
     r = 0.0
     for k in range(terms.shape[0]):
         A = terms[k, 0]
@@ -460,10 +478,15 @@ def _star_r_only(phi, z, terms):
         elif zt == 1.0:
             if z <= z1 or z >= z2:
                 continue
-            L = z2 - z1
-            a = np.pi * (z - z1) / L
-            s = np.sin(a)
-            Z = s * s
+            j = zsrc[k]
+            if j >= 0:
+                Z = zbuf[j]
+            else:
+                L = z2 - z1
+                a = np.pi * (z - z1) / L
+                s = np.sin(a)
+                Z = s * s
+                zbuf[k] = Z
         else:
             if z >= z2:
                 continue
@@ -497,11 +520,11 @@ def star_radius(phi, z, terms):
 
 
 @numba.njit(cache=True)
-def _star_f(ox, oy, oz, dx, dy, dz, t, terms):
+def _star_f(ox, oy, oz, dx, dy, dz, t, terms, zsrc, zbuf):
     x = ox + t * dx
     y = oy + t * dy
     z = oz + t * dz
-    return np.sqrt(x * x + y * y) - _star_r_only(np.arctan2(y, x), z, terms)
+    return np.sqrt(x * x + y * y) - _star_r_only(np.arctan2(y, x), z, terms, zsrc, zbuf)
 
 
 @numba.njit(cache=True)
@@ -518,6 +541,8 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol, first=True)
     n = d.shape[0]
     t_out = np.full(n, np.inf)
     kind = np.zeros(n, dtype=np.int8)
+    zsrc = _same_z(terms)
+    zbuf = np.zeros(terms.shape[0])
     for i in range(n):
         ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
         dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
@@ -552,7 +577,7 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol, first=True)
         tend = min(t1, c1, t_max[i])
         if tin >= tend:
             continue
-        f = _star_f(ox, oy, oz, dx, dy, dz, tin, terms)
+        f = _star_f(ox, oy, oz, dx, dy, dz, tin, terms, zsrc, zbuf)
         if f <= 0.0:
             t_out[i] = tin
             if tin == t0 and t0 > c0:
@@ -570,7 +595,7 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol, first=True)
             if tn >= tend:
                 tn = tend
                 last = True
-            fn = _star_f(ox, oy, oz, dx, dy, dz, tn, terms)
+            fn = _star_f(ox, oy, oz, dx, dy, dz, tn, terms, zsrc, zbuf)
             if fn <= 0.0:
                 if not first:
                     t_out[i] = tn
@@ -580,7 +605,7 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol, first=True)
                 hi = tn
                 while hi - lo > tol:
                     mid = 0.5 * (lo + hi)
-                    if _star_f(ox, oy, oz, dx, dy, dz, mid, terms) <= 0.0:
+                    if _star_f(ox, oy, oz, dx, dy, dz, mid, terms, zsrc, zbuf) <= 0.0:
                         hi = mid
                     else:
                         lo = mid
