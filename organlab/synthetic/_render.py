@@ -148,32 +148,45 @@ def plate_hits(o, d):
 
     Returns ``t`` (inf for misses), the colour albedo ``(N, 3)`` and normals.
     """
+    return _plate_kernel(np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(d, dtype=np.float64))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _plate_kernel(o, d):
+    """:func:`plate_hits` ray by ray: the operations of the vectorized version this replaced."""
     n = d.shape[0]
     t = np.full(n, np.inf)
     albedo = np.zeros((n, 3))
     normal = np.zeros((n, 3))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    R = PLATE_RADIUS
+    for i in range(n):
+        o0, o1, o2 = o[i, 0], o[i, 1], o[i, 2]
+        d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
         # top disk z = 0, seen from above
-        tt = -o[:, 2] / d[:, 2]
-        p = o + tt[:, None] * d
-        rho = np.hypot(p[:, 0], p[:, 1])
-        top = (tt > 0) & (rho <= PLATE_RADIUS) & (o[:, 2] > 0)
-        t[top] = tt[top]
-        g = 128.0 + 10.0 * np.cos(2 * np.pi * rho[top] / 24.0)
-        albedo[top] = np.stack([g, g, g * 0.97], axis=1)
-        normal[top] = [0.0, 0.0, 1.0]
+        tt = -o2 / d2
+        rho = np.hypot(o0 + tt * d0, o1 + tt * d1)
+        if tt > 0 and rho <= R and o2 > 0:
+            t[i] = tt
+            g = 128.0 + 10.0 * np.cos(2 * np.pi * rho / 24.0)
+            albedo[i, 0] = g
+            albedo[i, 1] = g
+            albedo[i, 2] = g * 0.97
+            normal[i, 2] = 1.0
         # side wall, rho = R, PLATE_BOTTOM <= z <= 0
-        a = d[:, 0] ** 2 + d[:, 1] ** 2
-        b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1]
-        c = o[:, 0] ** 2 + o[:, 1] ** 2 - PLATE_RADIUS**2
+        a = d0 * d0 + d1 * d1
+        b = o0 * d0 + o1 * d1
+        c = o0 * o0 + o1 * o1 - R * R
         disc = b * b - a * c
         ts = (-b - np.sqrt(disc)) / a
-        zs = o[:, 2] + ts * d[:, 2]
-        side = (disc > 0) & (ts > 0) & (zs <= 0) & (zs >= PLATE_BOTTOM) & (ts < t)
-    t[side] = ts[side]
-    albedo[side] = [70.0, 70.0, 72.0]
-    ps = o[side] + ts[side, None] * d[side]
-    normal[side] = np.stack([ps[:, 0], ps[:, 1], np.zeros(len(ps))], axis=1) / PLATE_RADIUS
+        zs = o2 + ts * d2
+        if disc > 0 and ts > 0 and zs <= 0 and zs >= PLATE_BOTTOM and ts < t[i]:
+            t[i] = ts
+            albedo[i, 0] = 70.0
+            albedo[i, 1] = 70.0
+            albedo[i, 2] = 72.0
+            normal[i, 0] = (o0 + ts * d0) / R
+            normal[i, 1] = (o1 + ts * d1) / R
+            normal[i, 2] = 0.0
     return t, albedo, normal
 
 
@@ -201,7 +214,7 @@ def board_hits(o, d, R_board, t_board, inner_corners, square, margin):
     return t_out, albedo, normal
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _board_kernel(o, d, nw, t_dot_n, R, tb, s, limits, n_x, n_y):
     """Per ray: the board's ``t`` (inf: no hit) and grey albedo (0: no hit), the operations of the
     vectorized version this replaced (einsum's sums in index order), ray by ray."""
