@@ -80,7 +80,7 @@ def render_hard(camera, *, supersample, specimen=None, plate=True):
     for s in range(0, n, _render.CHUNK):
         d = _render.world_rays(camera, supersample, s, s + _render.CHUNK)
         o = np.broadcast_to(centre, d.shape)
-        colour = _render.backdrop(d_cam_all[s : s + _render.CHUNK]).astype(np.float64)
+        colour = _render.backdrop_layer(camera, supersample)[s : s + _render.CHUNK].astype(np.float64)
         t_best = np.full(len(d), np.inf)
         if plate:
             t, albedo, normal = _render.plate_hits(o, d)

@@ -120,6 +120,23 @@ def camera_frame_rays(camera, supersample):
     )
 
 
+@lru_cache(maxsize=2)
+def _backdrop_layer(K_bytes, dist_bytes, size, supersample):
+    layer = backdrop(_camera_frame_rays(K_bytes, dist_bytes, size, supersample))
+    layer.setflags(write=False)
+    return layer
+
+
+def backdrop_layer(camera, supersample):
+    """:func:`backdrop` of all sub-pixel samples of ``camera`` (cached on the intrinsics: fixed to the camera)."""
+    return _backdrop_layer(
+        np.ascontiguousarray(camera.K).tobytes(),
+        np.ascontiguousarray(camera.dist).tobytes(),
+        tuple(camera.image_size),
+        int(supersample),
+    )
+
+
 def downsample(samples, size, supersample):
     """Box-filter ``(N, C)`` sub-pixel samples to an ``(H, W, C)`` image."""
     w, h = size
@@ -285,7 +302,21 @@ def box_candidates(origin, d, lo, hi, pad=0.5):
 def world_rays(camera, supersample, start, stop):
     """World-frame unit directions of samples ``start:stop`` of ``camera``."""
     d_cam = camera_frame_rays(camera, supersample)[start:stop]
-    return np.einsum("ij,jk->ik", d_cam, camera.R)  # R.T @ d_cam (einsum: no BLAS threads)
+    return _rows_times(d_cam, np.ascontiguousarray(camera.R, dtype=np.float64))  # R.T @ d_cam per row
+
+
+@numba.njit(cache=True)
+def _rows_times(a, R):
+    """``a @ R`` for ``a (N, 3)``, each sum in index order (as ``np.einsum("ij,jk->ik")``, no BLAS threads)."""
+    n = a.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        for k in range(3):
+            acc = 0.0
+            for j in range(3):
+                acc += a[i, j] * R[j, k]
+            out[i, k] = acc
+    return out
 
 
 _BG_CACHE = {}
