@@ -51,7 +51,11 @@ def _in_shadow(points, normals, light, specimen):
         return np.zeros(len(points), bool)
     o = points + 0.05 * normals + 0.05 * light
     d = np.broadcast_to(light, o.shape).copy()
-    return specimen._any_hit(np.ascontiguousarray(o), d)
+    out = np.zeros(len(points), bool)
+    idx = _render.box_candidates_each(o, d, *specimen.bounds)  # the rays that can hit it (as render's)
+    if idx.size:
+        out[idx] = specimen._any_hit(o[idx], d[idx])
+    return out
 
 
 def render_hard(camera, *, supersample, specimen=None, plate=True):

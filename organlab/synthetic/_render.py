@@ -292,6 +292,22 @@ def _box_hits(origin, d, lo, hi):
     return keep
 
 
+@numba.njit(cache=True)
+def _box_hits_each(o, d, lo, hi):
+    n = d.shape[0]
+    keep = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        keep[i] = _box_hits(o[i], d[i : i + 1], lo, hi)[0]
+    return keep
+
+
+def box_candidates_each(o, d, lo, hi, pad=0.5):
+    """:func:`box_candidates` for rays with their own origins ``o (N, 3)``."""
+    lo = np.asarray(lo, dtype=np.float64) - pad
+    hi = np.asarray(hi, dtype=np.float64) + pad
+    return np.flatnonzero(_box_hits_each(np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(d), lo, hi))
+
+
 def box_candidates(origin, d, lo, hi, pad=0.5):
     """Indices of the rays from ``origin`` (3,) along ``d`` (N, 3) that meet the box ``[lo - pad, hi + pad]``."""
     lo = np.asarray(lo, dtype=np.float64) - pad
