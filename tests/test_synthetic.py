@@ -64,6 +64,36 @@ def test_rays_reproject_through_the_distortion(cam):
     assert np.max(np.abs(back - px)) < 1e-6
 
 
+def test_cached_sample_rays_are_camera_rays():
+    # the renderer's compiled undistortion must give Camera.rays' directions bit for bit (the images are
+    # promised to be cast through Camera.rays); a coarse camera, 2 x 2 samples per pixel
+    from organlab.synthetic import _render
+
+    cam = syn.default_camera((160, 120))
+    d = _render.camera_frame_rays(cam, 2)
+    off = np.array([-0.25, 0.25])
+    v, u, sv, su = np.meshgrid(np.arange(120), np.arange(160), off, off, indexing="ij")
+    px = np.stack([(u + su).ravel(), (v + sv).ravel()], axis=1)
+    assert np.array_equal(d, cam.with_pose(np.eye(3), np.zeros(3)).rays(px)[1])
+
+
+@pytest.mark.parametrize("name", ["aaa", "aaa-11+branch", "grooved"])
+def test_any_hit_is_where_the_first_hit_is_finite(name):
+    # shadow and coverage rays ask only whether a ray hits: the same rays as _intersect's finite t,
+    # here rays from random points around the solid (inside and outside it) in random directions
+    spec = syn.make_specimen(name)
+    moved = syn.Moved(spec, (3.0, -2.0), 25.0)
+    rng = np.random.default_rng(5)
+    lo, hi = spec.bounds
+    o = rng.uniform(lo - 20.0, hi + 20.0, size=(4000, 3))
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for s in (spec, moved):
+        hit = s._any_hit(o, d)
+        assert 0.1 < hit.mean() < 0.9  # both kinds of rays are tried
+        assert np.array_equal(hit, np.isfinite(s.intersect(o, d)[0]))
+
+
 def test_roi_and_specimens_fit_in_every_view(cam, aaa, grooved):
     lo, hi = np.array(syn.DEFAULT_ROI["min"]), np.array(syn.DEFAULT_ROI["max"])
     box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])

@@ -51,8 +51,11 @@ def _in_shadow(points, normals, light, specimen):
         return np.zeros(len(points), bool)
     o = points + 0.05 * normals + 0.05 * light
     d = np.broadcast_to(light, o.shape).copy()
-    t, _ = specimen._intersect(np.ascontiguousarray(o), d, t_max=None)
-    return np.isfinite(t)
+    out = np.zeros(len(points), bool)
+    idx = _render.box_candidates_each(o, d, *specimen.bounds)  # the rays that can hit it (as render's)
+    if idx.size:
+        out[idx] = specimen._any_hit(o[idx], d[idx])
+    return out
 
 
 def render_hard(camera, *, supersample, specimen=None, plate=True):
@@ -81,7 +84,7 @@ def render_hard(camera, *, supersample, specimen=None, plate=True):
     for s in range(0, n, _render.CHUNK):
         d = _render.world_rays(camera, supersample, s, s + _render.CHUNK)
         o = np.broadcast_to(centre, d.shape)
-        colour = _render.backdrop(d_cam_all[s : s + _render.CHUNK]).astype(np.float64)
+        colour = _render.backdrop_layer(camera, supersample)[s : s + _render.CHUNK].astype(np.float64)
         t_best = np.full(len(d), np.inf)
         if plate:
             t, albedo, normal = _render.plate_hits(o, d)

@@ -71,6 +71,9 @@ class Painted(Specimen):
     def _intersect(self, o, d, t_max=None):
         return self.inner._intersect(o, d, t_max)
 
+    def _any_hit(self, o, d):
+        return self.inner._any_hit(o, d)
+
     def patches(self, points):
         """(N,) bool: the points under paint."""
         p = np.asarray(points, np.float64)
@@ -112,7 +115,7 @@ def render_lit(camera, specimen, *, look, supersample=3):
     for s in range(0, n, _render.CHUNK):
         d = _render.world_rays(camera, supersample, s, s + _render.CHUNK)
         o = np.broadcast_to(centre, d.shape)
-        colour = _render.backdrop(d_cam_all[s : s + _render.CHUNK]).astype(np.float64)
+        colour = _render.backdrop_layer(camera, supersample)[s : s + _render.CHUNK].astype(np.float64)
         t_best, albedo, normal = _render.plate_hits(o, d)
         m = np.isfinite(t_best)
         if look != "rim":

@@ -50,15 +50,86 @@ def _camera_frame_rays(K_bytes, dist_bytes, size, supersample):
     pix = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
     dirs = np.empty((pix.shape[0], 3))
     for s in range(0, pix.shape[0], CHUNK):
-        # Camera.rays with the identity pose gives camera-frame directions.
-        dirs[s : s + CHUNK] = cam.rays(pix[s : s + CHUNK])[1]
+        # Camera.rays with the identity pose gives camera-frame directions; _normalized_chunk is its
+        # pixels_to_normalized (undistort's Newton steps, stopping for the whole chunk) compiled
+        xn = _normalized_chunk(pix[s : s + CHUNK], cam.K, cam.dist, 30) if np.any(cam.dist) else None
+        dirs[s : s + CHUNK] = cam.rays(pix[s : s + CHUNK])[1] if xn is None else _unit_rays(xn)
     dirs.setflags(write=False)
     return dirs
+
+
+def _unit_rays(xn):
+    """``Camera.rays``' directions for the identity pose from undistorted normalized coordinates ``(N, 2)``."""
+    d = np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d
+
+
+@numba.njit(cache=True)
+def _normalized_chunk(px, K, dist, iterations):
+    """:meth:`Camera.pixels_to_normalized` of pixels ``(N, 2)``: the same operations in the same order.
+
+    :func:`organlab.camera.undistort`'s Newton steps on every point, until the largest residual of
+    the chunk (NaN ignored) is below 1e-14 or ``iterations`` steps.
+    """
+    n = px.shape[0]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    xd = np.empty(n)
+    yd = np.empty(n)
+    for i in range(n):
+        yd[i] = (px[i, 1] - K[1, 2]) / K[1, 1]
+        xd[i] = (px[i, 0] - K[0, 2] - K[0, 1] * yd[i]) / K[0, 0]
+    xn = np.empty((n, 2))
+    xn[:, 0] = xd
+    xn[:, 1] = yd
+    for _ in range(iterations):
+        worst = 0.0
+        for i in range(n):
+            x = xn[i, 0]
+            y = xn[i, 1]
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            rx = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)) - xd[i]
+            ry = (y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y) - yd[i]
+            drad_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            a = radial + x * drad_dr2 * 2 * x + 2 * p1 * y + p2 * (2 * x + 4 * x)
+            b = x * drad_dr2 * 2 * y + 2 * p1 * x + p2 * 2 * y
+            c = y * drad_dr2 * 2 * x + p1 * 2 * x + 2 * p2 * y
+            d = radial + y * drad_dr2 * 2 * y + p1 * (2 * y + 4 * y) + 2 * p2 * x
+            det = a * d - b * c
+            if np.abs(det) < 1e-12:
+                det = 1e-12
+            xn[i, 0] = x - (d * rx - b * ry) / det
+            xn[i, 1] = y - (-c * rx + a * ry) / det
+            if abs(rx) > worst:
+                worst = abs(rx)
+            if abs(ry) > worst:
+                worst = abs(ry)
+        if worst < 1e-14:
+            break
+    return xn
 
 
 def camera_frame_rays(camera, supersample):
     """Camera-frame unit directions of all sub-pixel samples of ``camera`` (cached)."""
     return _camera_frame_rays(
+        np.ascontiguousarray(camera.K).tobytes(),
+        np.ascontiguousarray(camera.dist).tobytes(),
+        tuple(camera.image_size),
+        int(supersample),
+    )
+
+
+@lru_cache(maxsize=2)
+def _backdrop_layer(K_bytes, dist_bytes, size, supersample):
+    layer = backdrop(_camera_frame_rays(K_bytes, dist_bytes, size, supersample))
+    layer.setflags(write=False)
+    return layer
+
+
+def backdrop_layer(camera, supersample):
+    """:func:`backdrop` of all sub-pixel samples of ``camera`` (cached on the intrinsics: fixed to the camera)."""
+    return _backdrop_layer(
         np.ascontiguousarray(camera.K).tobytes(),
         np.ascontiguousarray(camera.dist).tobytes(),
         tuple(camera.image_size),
@@ -94,32 +165,45 @@ def plate_hits(o, d):
 
     Returns ``t`` (inf for misses), the colour albedo ``(N, 3)`` and normals.
     """
+    return _plate_kernel(np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(d, dtype=np.float64))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _plate_kernel(o, d):
+    """:func:`plate_hits` ray by ray: the operations of the vectorized version this replaced."""
     n = d.shape[0]
     t = np.full(n, np.inf)
     albedo = np.zeros((n, 3))
     normal = np.zeros((n, 3))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    R = PLATE_RADIUS
+    for i in range(n):
+        o0, o1, o2 = o[i, 0], o[i, 1], o[i, 2]
+        d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
         # top disk z = 0, seen from above
-        tt = -o[:, 2] / d[:, 2]
-        p = o + tt[:, None] * d
-        rho = np.hypot(p[:, 0], p[:, 1])
-        top = (tt > 0) & (rho <= PLATE_RADIUS) & (o[:, 2] > 0)
-        t[top] = tt[top]
-        g = 128.0 + 10.0 * np.cos(2 * np.pi * rho[top] / 24.0)
-        albedo[top] = np.stack([g, g, g * 0.97], axis=1)
-        normal[top] = [0.0, 0.0, 1.0]
+        tt = -o2 / d2
+        rho = np.hypot(o0 + tt * d0, o1 + tt * d1)
+        if tt > 0 and rho <= R and o2 > 0:
+            t[i] = tt
+            g = 128.0 + 10.0 * np.cos(2 * np.pi * rho / 24.0)
+            albedo[i, 0] = g
+            albedo[i, 1] = g
+            albedo[i, 2] = g * 0.97
+            normal[i, 2] = 1.0
         # side wall, rho = R, PLATE_BOTTOM <= z <= 0
-        a = d[:, 0] ** 2 + d[:, 1] ** 2
-        b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1]
-        c = o[:, 0] ** 2 + o[:, 1] ** 2 - PLATE_RADIUS**2
+        a = d0 * d0 + d1 * d1
+        b = o0 * d0 + o1 * d1
+        c = o0 * o0 + o1 * o1 - R * R
         disc = b * b - a * c
         ts = (-b - np.sqrt(disc)) / a
-        zs = o[:, 2] + ts * d[:, 2]
-        side = (disc > 0) & (ts > 0) & (zs <= 0) & (zs >= PLATE_BOTTOM) & (ts < t)
-    t[side] = ts[side]
-    albedo[side] = [70.0, 70.0, 72.0]
-    ps = o[side] + ts[side, None] * d[side]
-    normal[side] = np.stack([ps[:, 0], ps[:, 1], np.zeros(len(ps))], axis=1) / PLATE_RADIUS
+        zs = o2 + ts * d2
+        if disc > 0 and ts > 0 and zs <= 0 and zs >= PLATE_BOTTOM and ts < t[i]:
+            t[i] = ts
+            albedo[i, 0] = 70.0
+            albedo[i, 1] = 70.0
+            albedo[i, 2] = 72.0
+            normal[i, 0] = (o0 + ts * d0) / R
+            normal[i, 1] = (o1 + ts * d1) / R
+            normal[i, 2] = 0.0
     return t, albedo, normal
 
 
@@ -134,30 +218,57 @@ def board_hits(o, d, R_board, t_board, inner_corners, square, margin):
     """
     n_x, n_y = inner_corners
     s = float(square)
-    normal_w = R_board[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = np.einsum("ij,j->i", d, normal_w)
-        t = (t_board @ normal_w - np.einsum("ij,j->i", o, normal_w)) / denom
-    t = np.where(np.isfinite(t) & (t > 0), t, np.inf)
-    hit = np.isfinite(t)
-    p = o[hit] + t[hit, None] * d[hit]
-    local = np.einsum("ij,jk->ik", p - t_board, R_board)  # R_board.T @ (p - t_board)
-    x, y = local[:, 0], local[:, 1]
-    lo_x, hi_x = -s - margin, n_x * s + margin
-    lo_y, hi_y = -s - margin, n_y * s + margin
-    on = (x >= lo_x) & (x <= hi_x) & (y >= lo_y) & (y <= hi_y)
-    a = np.floor(x / s).astype(np.int64) + 1
-    b = np.floor(y / s).astype(np.int64) + 1
-    in_squares = (a >= 0) & (a <= n_x) & (b >= 0) & (b <= n_y)
-    is_black = in_squares & ((a + b) % 2 == 0)
-    g = np.where(is_black, BOARD_BLACK, BOARD_WHITE)
-    idx = np.flatnonzero(hit)
-    t_out = np.full(d.shape[0], np.inf)
-    t_out[idx[on]] = t[idx[on]]
+    R_board = np.ascontiguousarray(R_board, dtype=np.float64)
+    t_board = np.ascontiguousarray(t_board, dtype=np.float64)
+    normal_w = np.ascontiguousarray(R_board[:, 2])
+    t_dot_n = t_board @ normal_w
+    limits = np.array([-s - margin, n_x * s + margin, -s - margin, n_y * s + margin])
+    t_out, grey = _board_kernel(np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(d, dtype=np.float64),
+                                normal_w, t_dot_n, R_board, t_board, s, limits, int(n_x), int(n_y))
     albedo = np.zeros((d.shape[0], 3))
-    albedo[idx[on]] = g[on, None]
+    albedo[:] = grey[:, None]
     normal = np.broadcast_to(normal_w, d.shape)
     return t_out, albedo, normal
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _board_kernel(o, d, nw, t_dot_n, R, tb, s, limits, n_x, n_y):
+    """Per ray: the board's ``t`` (inf: no hit) and grey albedo (0: no hit), the operations of the
+    vectorized version this replaced (einsum's sums in index order), ray by ray."""
+    n = d.shape[0]
+    t_out = np.full(n, np.inf)
+    grey = np.zeros(n)
+    for i in range(n):
+        denom = 0.0
+        on_ = 0.0
+        for j in range(3):
+            denom += d[i, j] * nw[j]
+        for j in range(3):
+            on_ += o[i, j] * nw[j]
+        t = (t_dot_n - on_) / denom
+        if not (np.isfinite(t) and t > 0):
+            continue
+        q0 = o[i, 0] + t * d[i, 0] - tb[0]
+        q1 = o[i, 1] + t * d[i, 1] - tb[1]
+        q2 = o[i, 2] + t * d[i, 2] - tb[2]
+        x = 0.0
+        x += q0 * R[0, 0]
+        x += q1 * R[1, 0]
+        x += q2 * R[2, 0]
+        y = 0.0
+        y += q0 * R[0, 1]
+        y += q1 * R[1, 1]
+        y += q2 * R[2, 1]
+        if not ((x >= limits[0]) and (x <= limits[1]) and (y >= limits[2]) and (y <= limits[3])):
+            continue
+        a = np.int64(np.floor(x / s)) + 1
+        b = np.int64(np.floor(y / s)) + 1
+        t_out[i] = t
+        if (a >= 0) and (a <= n_x) and (b >= 0) and (b <= n_y) and ((a + b) % 2 == 0):
+            grey[i] = BOARD_BLACK
+        else:
+            grey[i] = BOARD_WHITE
+    return t_out, grey
 
 
 @numba.njit(cache=True)
@@ -181,6 +292,22 @@ def _box_hits(origin, d, lo, hi):
     return keep
 
 
+@numba.njit(cache=True)
+def _box_hits_each(o, d, lo, hi):
+    n = d.shape[0]
+    keep = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        keep[i] = _box_hits(o[i], d[i : i + 1], lo, hi)[0]
+    return keep
+
+
+def box_candidates_each(o, d, lo, hi, pad=0.5):
+    """:func:`box_candidates` for rays with their own origins ``o (N, 3)``."""
+    lo = np.asarray(lo, dtype=np.float64) - pad
+    hi = np.asarray(hi, dtype=np.float64) + pad
+    return np.flatnonzero(_box_hits_each(np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(d), lo, hi))
+
+
 def box_candidates(origin, d, lo, hi, pad=0.5):
     """Indices of the rays from ``origin`` (3,) along ``d`` (N, 3) that meet the box ``[lo - pad, hi + pad]``."""
     lo = np.asarray(lo, dtype=np.float64) - pad
@@ -191,7 +318,21 @@ def box_candidates(origin, d, lo, hi, pad=0.5):
 def world_rays(camera, supersample, start, stop):
     """World-frame unit directions of samples ``start:stop`` of ``camera``."""
     d_cam = camera_frame_rays(camera, supersample)[start:stop]
-    return np.einsum("ij,jk->ik", d_cam, camera.R)  # R.T @ d_cam (einsum: no BLAS threads)
+    return _rows_times(d_cam, np.ascontiguousarray(camera.R, dtype=np.float64))  # R.T @ d_cam per row
+
+
+@numba.njit(cache=True)
+def _rows_times(a, R):
+    """``a @ R`` for ``a (N, 3)``, each sum in index order (as ``np.einsum("ij,jk->ik")``, no BLAS threads)."""
+    n = a.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        for k in range(3):
+            acc = 0.0
+            for j in range(3):
+                acc += a[i, j] * R[j, k]
+            out[i, k] = acc
+    return out
 
 
 _BG_CACHE = {}
@@ -289,8 +430,7 @@ def coverage(camera, specimen, *, supersample):
         idx = box_candidates(centre, d, *specimen.bounds)
         if idx.size:
             di = d[idx]
-            t, _ = specimen._intersect(np.broadcast_to(centre, di.shape), di, t_max=None)
-            hit[idx] = np.isfinite(t)
+            hit[idx] = specimen._any_hit(np.broadcast_to(centre, di.shape), di)
         out[s : s + CHUNK, 0] = hit
     return downsample(out, camera.image_size, supersample)[:, :, 0].astype(np.float32)
 
@@ -364,6 +504,70 @@ def _star_r(phi, z, terms):
 
 
 @numba.njit(cache=True)
+def _same_z(terms):
+    """Per term, the index of the first term with the same sin^2 z profile (``ztype`` 1, same ``z1``, ``z2``), or -1."""
+    n = terms.shape[0]
+    src = np.full(n, -1, dtype=np.int64)
+    for k in range(n):
+        if terms[k, 1] == 1.0:
+            for j in range(k):
+                if src[j] == -1 and terms[j, 1] == 1.0 and terms[j, 2] == terms[k, 2] and terms[j, 3] == terms[k, 3]:
+                    src[k] = j
+                    break
+    return src
+
+
+@numba.njit(cache=True)
+def _star_r_only(phi, z, terms, zsrc, zbuf):
+    """``r(phi, z)`` alone: :func:`_star_r`'s first value (the same operations), without the derivatives.
+
+    ``zsrc`` (:func:`_same_z`): a term whose z profile an earlier term has takes that term's value
+    (the same number, kept in the scratch ``zbuf``) instead of computing the same sine again.
+    """
+    r = 0.0
+    for k in range(terms.shape[0]):
+        A = terms[k, 0]
+        zt = terms[k, 1]
+        z1 = terms[k, 2]
+        z2 = terms[k, 3]
+        pt = terms[k, 4]
+        m = terms[k, 5]
+        mu = terms[k, 6]
+        if zt == 0.0:
+            Z = 1.0
+        elif zt == 1.0:
+            if z <= z1 or z >= z2:
+                continue
+            j = zsrc[k]
+            if j >= 0:
+                Z = zbuf[j]
+            else:
+                L = z2 - z1
+                a = np.pi * (z - z1) / L
+                s = np.sin(a)
+                Z = s * s
+                zbuf[k] = Z
+        else:
+            if z >= z2:
+                continue
+            if z <= z1:
+                Z = 1.0
+            else:
+                L = z2 - z1
+                q = 1.0 - (z - z1) / L
+                Z = q * q
+        if pt == 0.0:
+            P = 1.0
+        elif pt == 1.0:
+            P = np.cos(m * (phi - mu))
+        else:
+            c = np.cos(phi - mu)
+            P = np.exp(m * (c - 1.0))
+        r += A * Z * P
+    return r
+
+
+@numba.njit(cache=True)
 def star_radius(phi, z, terms):
     """Vectorized ``r, r_phi, r_z`` at ``(N,)`` angles (rad) and heights (mm)."""
     n = phi.shape[0]
@@ -376,26 +580,29 @@ def star_radius(phi, z, terms):
 
 
 @numba.njit(cache=True)
-def _star_f(ox, oy, oz, dx, dy, dz, t, terms):
+def _star_f(ox, oy, oz, dx, dy, dz, t, terms, zsrc, zbuf):
     x = ox + t * dx
     y = oy + t * dy
     z = oz + t * dz
-    r, _, _ = _star_r(np.arctan2(y, x), z, terms)
-    return np.sqrt(x * x + y * y) - r
+    return np.sqrt(x * x + y * y) - _star_r_only(np.arctan2(y, x), z, terms, zsrc, zbuf)
 
 
 @numba.njit(cache=True)
-def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol):
+def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol, first=True):
     """First hit of rays with a star solid.
 
     Sphere tracing on ``f = rho - r(phi, z)`` with the Lipschitz bound
     ``lip`` (``f / lip`` never overshoots the surface), minimum step
     ``hmin``, then bisection to ``tol`` mm.  Returns ``t`` (inf: no hit) and
-    the kind of hit: 0 none, 1 side, 2 top cap, 3 bottom cap.
+    the kind of hit: 0 none, 1 side, 2 top cap, 3 bottom cap.  ``first=False``
+    (any hit, for shadow rays): the same steps, without the bisection, so
+    ``t`` is finite for exactly the same rays but not refined.
     """
     n = d.shape[0]
     t_out = np.full(n, np.inf)
     kind = np.zeros(n, dtype=np.int8)
+    zsrc = _same_z(terms)
+    zbuf = np.zeros(terms.shape[0])
     for i in range(n):
         ox, oy, oz = o[i, 0], o[i, 1], o[i, 2]
         dx, dy, dz = d[i, 0], d[i, 1], d[i, 2]
@@ -430,7 +637,7 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol):
         tend = min(t1, c1, t_max[i])
         if tin >= tend:
             continue
-        f = _star_f(ox, oy, oz, dx, dy, dz, tin, terms)
+        f = _star_f(ox, oy, oz, dx, dy, dz, tin, terms, zsrc, zbuf)
         if f <= 0.0:
             t_out[i] = tin
             if tin == t0 and t0 > c0:
@@ -448,13 +655,17 @@ def star_trace(o, d, t_max, terms, z_lo, z_hi, rmax, lip, hmin, tol):
             if tn >= tend:
                 tn = tend
                 last = True
-            fn = _star_f(ox, oy, oz, dx, dy, dz, tn, terms)
+            fn = _star_f(ox, oy, oz, dx, dy, dz, tn, terms, zsrc, zbuf)
             if fn <= 0.0:
+                if not first:
+                    t_out[i] = tn
+                    kind[i] = 1
+                    break
                 lo = t
                 hi = tn
                 while hi - lo > tol:
                     mid = 0.5 * (lo + hi)
-                    if _star_f(ox, oy, oz, dx, dy, dz, mid, terms) <= 0.0:
+                    if _star_f(ox, oy, oz, dx, dy, dz, mid, terms, zsrc, zbuf) <= 0.0:
                         hi = mid
                     else:
                         lo = mid

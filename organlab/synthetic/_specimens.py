@@ -102,6 +102,10 @@ class Specimen:
             o = np.broadcast_to(o, d.shape)
         return self._intersect(o, d, t_max=None)
 
+    def _any_hit(self, o, d):
+        """``(N,)`` bool: the rays that hit the solid (``np.isfinite`` of :meth:`_intersect`'s ``t``, ``t_max`` none)."""
+        return np.isfinite(self._intersect(o, d, t_max=None)[0])
+
     def __repr__(self):
         return f"{type(self).__name__}(name={self.name!r}, volume={self.volume:.6g} mm^3)"
 
@@ -270,13 +274,20 @@ class _StarSolid:
             out[idx] = rho[idx] <= r
         return out
 
-    def _intersect(self, o, d, t_max=None):
-        n = len(d)
+    def _trace(self, o, d, t_max, first):
         o = np.ascontiguousarray(o, dtype=np.float64)
         d = np.ascontiguousarray(d, dtype=np.float64)
         t, kind = _render.star_trace(
-            o, d, _tmax(t_max, n), self.terms, self.z_lo, self.z_hi, self.r_max, self.lip, 0.02, 1e-5
+            o, d, _tmax(t_max, len(d)), self.terms, self.z_lo, self.z_hi, self.r_max, self.lip, 0.02, 1e-5, first
         )
+        return o, d, t, kind
+
+    def _any_hit(self, o, d):
+        # the same marching as _intersect (the same rays hit), without the bisection and the normals
+        return np.isfinite(self._trace(o, d, None, False)[2])
+
+    def _intersect(self, o, d, t_max=None):
+        o, d, t, kind = self._trace(o, d, t_max, True)
         normals = np.zeros_like(d)
         normals[kind == 2, 2] = 1.0
         normals[kind == 3, 2] = -1.0
@@ -317,6 +328,21 @@ class _Union(Specimen):
             normals[closer] = nrm[closer]
             hit_any |= closer
         return np.where(hit_any, t_best, np.inf), normals
+
+    def _any_hit(self, o, d):
+        # _intersect's t is finite where any part's is (a later part only gets a t_max where an earlier one hit)
+        hit = np.zeros(len(d), dtype=bool)
+        for part in self.parts:
+            rest = np.flatnonzero(~hit)
+            if rest.size == 0:
+                break
+            any_hit = getattr(part, "_any_hit", None)
+            if any_hit is None:
+                got = np.isfinite(part._intersect(o[rest], d[rest], None)[0])
+            else:
+                got = any_hit(o[rest], d[rest])
+            hit[rest[got]] = True
+        return hit
 
 
 class AAAPhantom(_Union):
@@ -625,6 +651,9 @@ class Moved(Specimen):
     def _intersect(self, o, d, t_max=None):
         t, nrm = self.inner._intersect(np.ascontiguousarray(self._to_inner(o)), np.ascontiguousarray(d @ self.R), t_max)
         return t, nrm @ self.R.T
+
+    def _any_hit(self, o, d):
+        return self.inner._any_hit(np.ascontiguousarray(self._to_inner(o)), np.ascontiguousarray(d @ self.R))
 
     def albedo(self, points):
         return self.inner.albedo(self._to_inner(np.asarray(points, np.float64)))
