@@ -448,7 +448,7 @@ def hull_field(
     >>> field
     BandField(shape=(35, 35, 50), block=4, band_blocks=167, 0.0 MB)
     >>> field.n_inside() * grid.voxel_size**3  # mm^3 (the phantom: 165 661 mm^3; 6 views leave the hull larger)
-    176512.0
+    176448.0
     """
     _check_grid(grid)
     if isinstance(silhouettes, np.ndarray) and silhouettes.ndim == 2:

@@ -455,7 +455,7 @@ def silhouettes(
     >>> len(sils), sils[0].mask.shape, sils[0].source, round(sils[0].threshold, 1)
     (6, (480, 640), 'subtraction', 17.5)
     >>> [int(sil.mask.sum()) for sil in sils]  # specimen pixels per view
-    [11339, 10954, 11179, 11365, 11039, 11222]
+    [11333, 10954, 11179, 11363, 11037, 11218]
     """
     if not isinstance(session, Session):
         session = load_session(session)

@@ -413,6 +413,10 @@ def _outer_ring(m_s, d_s, c_s, dm, seed, frac, depth):
 
     k = np.ones((3, 3), np.uint8)
     added = (m_s != 0) & ~seed
+    # a shaded rim grows along the outline, each added pixel beside another; an added pixel alone is a speck
+    # (impulse noise next to the outline), which must not bring a ring of its own
+    beside = cv2.boxFilter(added.view(np.uint8), cv2.CV_16U, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    added &= beside >= 2
     reach = 2 * depth + 1
     near = cv2.dilate(added.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (reach, reach))).astype(bool)
     front = c_s & near & cv2.dilate(m_s, k).astype(bool)
