@@ -25,7 +25,7 @@ it: both only move or scale the model).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,16 +40,6 @@ SIGMA_ANGLE_DEG = 30.0
 #: few tenths of a degree (0.3 degrees of jitter give second differences of sd 0.7; 0.1 degrees, as before
 #: the sub-pixel outlines, smoothed the stops' own errors away: 0.29 / 0.73 degrees against 0.17 / 0.54).
 SIGMA_SMOOTH_DEG = 0.5
-#: Exponent and clip of :func:`smooth_sd` (0: the same sd for every view).  Off: with SMOOTH_START_DEG 0.5, power
-#: 0.5 met issue 20 (a) on both branched-AAA drifts (0.200 / 0.451 and 0.123 / 0.492 degrees, against 0.152 / 0.457
-#: and 0.152 / 0.530 off), but 0.25, or a clip of 1.5, did not on the second; not yet run on the bump, slip and
-#: ``dented`` scenes (docs/trust.md, issue 20 (a)).
-SMOOTH_POWER = 0.0
-SMOOTH_CLIP = 3.0
-#: Continuation (0: off): the angles are first fitted with this smoothness sd for every view, then with the
-#: model's own from there.  Fitted straight from the commanded angles, a looser smoothness stops in a local
-#: minimum of the tangents' cost (soft-L1 89.2 against 72.3 at the true angles, exact silhouettes, true camera).
-SMOOTH_START_DEG = 0.0
 #: The capture's angle audit (measured from the board at every stop): its error on the simulated rig is
 #: below 0.01 deg at 640 x 480, 0.05 deg at 320 x 240 (docs/capture.md); the views are taken at the same stops
 #: in a later pass, so a little more.
@@ -115,9 +105,6 @@ class Model:
     angles_free: bool = True
     #: measured angle corrections (the capture's angle audit, degrees; NaN: not audited), or None
     audit_deg: np.ndarray | None = None
-    #: sd (degrees) of each view's second difference of the angle corrections (``(n,)``, views 1..n-2 used), or
-    #: None for :data:`SIGMA_SMOOTH_DEG` everywhere: see :func:`smooth_sd`
-    smooth_deg: np.ndarray | None = None
 
     @property
     def n_shared(self):
@@ -190,7 +177,7 @@ class Model:
         if self.kind == "turntable" and self.n >= 3:
             e = d - m  # what the audit did not measure drifts smoothly
             dd = e[2:] - 2 * e[1:-1] + e[:-2]
-            out.append(dd / (SIGMA_SMOOTH_DEG if self.smooth_deg is None else self.smooth_deg[1:-1]))
+            out.append(dd / SIGMA_SMOOTH_DEG)
         if self.n_shared:
             out.append(np.rad2deg(w) / np.array([SIGMA_PITCH_DEG, SIGMA_ROTATION_DEG, SIGMA_ROTATION_DEG]))
             out.append(tau / SIGMA_TRANSLATION_MM)
@@ -198,19 +185,6 @@ class Model:
             out.append(slip[:2] / SIGMA_SLIP_MM)
             out.append(slip[2:] / SIGMA_SLIP_DEG)
         return np.concatenate(out)
-
-
-def smooth_sd(info):
-    """Per-view sd of the smooth-drift prior from how much each view's tangents pin its own angle.
-
-    ``info`` (n,) is the data's information on each view's angle (the squared norm of its Jacobian column);
-    a view whose outline pins its angle well is held less to its neighbours (its own jitter is seen), one
-    that shows little leans on them: ``SIGMA_SMOOTH_DEG * clip((info / median) ** SMOOTH_POWER, 1/SMOOTH_CLIP, SMOOTH_CLIP)``.
-    """
-    info = np.asarray(info, np.float64)
-    med = np.nanmedian(info[info > 0]) if np.any(info > 0) else 1.0
-    q = np.where(np.isfinite(info) & (info > 0), info / med, 1.0)
-    return SIGMA_SMOOTH_DEG * np.clip(q**SMOOTH_POWER, 1 / SMOOTH_CLIP, SMOOTH_CLIP)
 
 
 class Problem:
@@ -303,31 +277,8 @@ class Problem:
             J[2 * P :, k] = (m.prior(xk) - p0) / h
         return J
 
-    def angle_information(self, x):
-        """(n,) the silhouettes' information on each view's angle: the squared norm of its residuals'
-        derivative (units of :data:`SIGMA_PX` per degree; view 0, whose angle is fixed, is NaN)."""
-        r0 = self.pair_residuals(x)
-        out = np.full(self.model.n, np.nan)
-        if not self.model.angles_free:
-            return out
-        ns, h = self.model.n_shared, 1e-4
-        for v in range(1, self.model.n):
-            xk = x.copy()
-            xk[ns + v - 1] += h
-            sel = self.by_view[v]
-            d = (self.pair_residuals(xk, sel) - r0[sel]) / h / SIGMA_PX
-            out[v] = float(np.sum(d * d))
-        return out
-
     def fit(self, x0, *, weights=None, max_iter=30):
         """Robust Levenberg-Marquardt (soft-L1, :data:`F_SCALE`), deterministic; returns ``(x, info)``."""
-        m = self.model
-        if SMOOTH_START_DEG > 0 and m.kind == "turntable" and m.angles_free:
-            self.model = replace(m, smooth_deg=np.full(m.n, SMOOTH_START_DEG))
-            try:
-                x0, _ = robust_lm(lambda x: self.residuals(x, weights), lambda x: self.jacobian(x, weights), x0, max_iter=max_iter)
-            finally:
-                self.model = m
         return robust_lm(lambda x: self.residuals(x, weights), lambda x: self.jacobian(x, weights), x0, max_iter=max_iter)
 
     def view_rms(self, x, views=None, partners=None):

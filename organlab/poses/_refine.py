@@ -364,9 +364,6 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *
         also = f" and the angle audit measured every stop within {AUDIT_FLAG_DEG} deg" if model.audit_deg is not None else ""
         return PoseRefinement(reason=f"skipped: every view agrees (largest tangent RMS {np.nanmax(before):.2f} px "
                               f"<= {flag_px} px){also}", **base)
-    if model.kind == "turntable" and _model.SMOOTH_POWER:
-        # each view held to its neighbours' drift by how little its own outline pins its angle
-        model = replace(model, smooth_deg=_model.smooth_sd(pb.angle_information(x0)))
     # candidates: the shared camera pose alone, the angles alone, both (each with a slip when
     # one is found); the leave-out gate picks the simplest that views left out agree best with
     kinds = ((True, False), (False, True), (True, True)) if model.kind == "turntable" else ((False, True),)
