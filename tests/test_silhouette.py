@@ -126,14 +126,14 @@ def test_warm_kernels_load_the_specialisations_the_stage_calls():
     from organlab.silhouette import _kernels, warm_kernels
 
     warm_kernels()
-    kernels = (_kernels.std_frames, _kernels.color_distance)  # the median of <= 32 frames: numpy
+    kernels = (_kernels.std_frames, _kernels.color_distance, _kernels.split_above)  # median <= 32 frames: numpy
     before = [list(k.signatures) for k in kernels]
     assert all(before)
     rng = np.random.default_rng(3)
     frames = [rng.integers(0, 256, (12, 16, 3), dtype=np.uint8) for _ in range(4)]
     bg = background_model(frames)
     background_noise(frames)
-    difference(frames[0], bg)
+    auto_threshold(difference(frames[0], bg))
     assert [list(k.signatures) for k in kernels] == before  # nothing new compiled or loaded by the stage
 
 
@@ -151,3 +151,45 @@ def test_median_frames_equals_numpy_median(n):
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, np.median(stack, axis=0).astype(np.float32))
     np.testing.assert_array_equal(stack, copy)
+
+
+def _li_images():
+    """Difference images Li's threshold is taken of: this file's scenes (two seeds, two noise levels), the
+    sample's first views when present, and float32 images of other laws (skewed, bimodal, few levels,
+    strided) that no default was tuned on."""
+    rng = np.random.default_rng(11)
+    out = []
+    for seed, noise in [(2, 2.0), (5, 6.0)]:
+        frames, img, _, _ = _scene(np.random.default_rng(seed), noise=noise)
+        bg = background_model(frames)
+        out += [difference(img, bg), difference(img, bg, mode="grey")]
+    out.append(rng.exponential(3.0, (240, 320)).astype(np.float32))
+    out.append(np.concatenate([rng.normal(5, 1, 20000), rng.normal(60, 9, 3000)]).astype(np.float32).reshape(100, 230))
+    out.append(rng.integers(0, 7, (50, 60)).astype(np.float32) * np.float32(0.3))
+    out.append(rng.gamma(2.0, 4.0, (300, 200)).astype(np.float32)[::2, ::3])  # not contiguous
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
+    if (sample / "session.json").is_file():
+        from organlab.session import load_session
+
+        s = load_session(sample)
+        bg = background_model([s.read(p) for p in s.background_images])
+        out += [difference(s.read(v.image), bg) for v in s.views[:6]]
+    return out
+
+
+def test_li_threshold_is_scikit_images_to_the_bit():
+    """auto_threshold's own Li iteration (one-pass split, sorted gaps) returns the very float32 that
+    ``skimage.filters.threshold_li`` returns, on every image of _li_images: a threshold one ulp off could
+    flip a pixel and change the silhouettes, which must stay byte-identical."""
+    from skimage.filters import threshold_li
+
+    from organlab.silhouette._subtract import _li_threshold
+
+    for d in _li_images():
+        want = threshold_li(d)
+        got = _li_threshold(np.asarray(d, dtype=np.float32))
+        assert got.dtype == want.dtype == np.float32
+        assert got == want
+        assert auto_threshold(d) == float(want)

@@ -12,7 +12,9 @@ numpy expressions they replace, computed in one pass and in parallel.
   float32 square root), in one pass without the float32 copy of the stack;
 * :func:`color_distance` -- ``difference``'s colour distance,
   ``float32(float64(sqrt(float32 sum of squares)) / sqrt(3))``, as numpy
-  evaluates it (float32 squares summed left to right, float32 square root).
+  evaluates it (float32 squares summed left to right, float32 square root);
+* :func:`split_above` -- ``x[x > t]`` and ``x[~(x > t)]`` of a 1-D float32 array in one pass, into
+  buffers given (Li's threshold iterations, :func:`organlab.silhouette._subtract._li_threshold`).
 """
 
 from __future__ import annotations
@@ -140,6 +142,27 @@ def std_frames(stack):
     return out
 
 
+@njit(cache=True, nogil=True)
+def split_above(x, t, above, below):
+    """``x[x > t]`` into ``above[:n_above]`` and ``x[~(x > t)]`` into ``below[:n_below]``, in ``x``'s order.
+
+    ``x`` (N,) float32, ``t`` a float32 scalar, ``above`` and ``below`` (N,) float32 buffers (overwritten);
+    returns ``(n_above, n_below)``.  The same elements in the same order as numpy's boolean indexing, so
+    ``np.mean(above[:n_above])`` is ``np.mean(x[x > t])`` to the bit.
+    """
+    na = 0
+    nb = 0
+    for i in range(x.shape[0]):
+        v = x[i]
+        if v > t:
+            above[na] = v
+            na += 1
+        else:
+            below[nb] = v
+            nb += 1
+    return na, nb
+
+
 def warm_kernels() -> None:
     """Load the kernels above from numba's cache, ahead of the first silhouettes.
 
@@ -151,3 +174,5 @@ def warm_kernels() -> None:
     _median_histogram(np.zeros((1, 1), np.uint8))  # the carving's parallel kernels share its threading layer
     std_frames(np.zeros((2, 1), np.uint8))
     color_distance(np.zeros((1, 1, 3), np.uint8), np.zeros((1, 1, 3), np.float32))
+    z = np.zeros(1, np.float32)
+    split_above(z, np.float32(0.0), z.copy(), z.copy())

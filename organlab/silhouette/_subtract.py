@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ..masks import Silhouette
-from ._kernels import color_distance, median_frames, std_frames
+from ._kernels import color_distance, median_frames, split_above, std_frames
 
 __all__ = [
     "background_model",
@@ -193,10 +193,42 @@ def auto_threshold(diff: np.ndarray, *, method: Literal["li", "otsu", "triangle"
         raise ValueError("difference image has non-finite values")
     if float(d.max()) - float(d.min()) < 1e-6:
         raise ValueError("difference image is constant: the view does not differ from the background")
-    funcs = {"li": filters.threshold_li, "otsu": filters.threshold_otsu, "triangle": filters.threshold_triangle}
+    funcs = {"li": _li_threshold, "otsu": filters.threshold_otsu, "triangle": filters.threshold_triangle}
     if method not in funcs:
         raise ValueError(f"method must be one of {sorted(funcs)}, got {method!r}")
     return max(float(funcs[method](d)), float(floor))
+
+
+def _li_threshold(d):
+    """Li's minimum cross-entropy threshold of a finite, non-constant float32 image: the float32 value
+    ``skimage.filters.threshold_li(d)`` returns, to the bit, at about 3/4 of its CPU.
+
+    Li's iteration (Li and Tam 1998): from the mean, ``t <- (m_b - m_f) / (log m_b - log m_f)``
+    with ``m_f``, ``m_b`` the means above and at or below ``t`` (the values shifted to a minimum of 0), until
+    ``t`` moves by at most half the smallest gap between two values.  The same float32 operations on the
+    same arrays as scikit-image's (the means by ``np.mean`` over the values in image order), without
+    its NaN and infinity copies (``auto_threshold`` checked the image finite and not constant), the two
+    sides split in one pass (:func:`~organlab.silhouette._kernels.split_above`), the smallest gap from
+    the sorted values instead of ``np.unique`` (the same consecutive distinct values).  The sample's 36
+    views: 0.151-0.156 -> 0.109-0.123 s CPU, best of 5 on a loaded 2-core machine (tests/test_silhouette.py
+    checks the values against scikit-image's).
+    """
+    lo = np.min(d)
+    x = d.ravel() - lo  # float32, in C order as scikit-image's boolean-indexed copy
+    gaps = np.diff(np.sort(x))
+    tolerance = np.min(gaps[gaps > 0]) / 2
+    t_next = np.mean(x)
+    t_curr = -2 * tolerance
+    above, below = np.empty_like(x), np.empty_like(x)
+    while abs(t_next - t_curr) > tolerance:
+        t_curr = t_next
+        na, nb = split_above(x, np.float32(t_curr), above, below)
+        mean_fore = np.mean(above[:na])
+        mean_back = np.mean(below[:nb])
+        if mean_back == 0.0:
+            break
+        t_next = (mean_back - mean_fore) / (np.log(mean_back) - np.log(mean_fore))
+    return t_next + lo
 
 
 def _disk(radius):
