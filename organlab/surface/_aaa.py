@@ -14,6 +14,7 @@ diameter is *not* the clinical measure (it is the minor axis at best).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -159,13 +160,102 @@ def _route(cost, a, b):
     return path
 
 
+@njit(cache=True, nogil=True)
+def _envelope(f, n, d, v, z):
+    """``d[j] = min_q f[q] + (j - q)^2`` for ``j < n`` (squared distances, exact integers in float64): the
+    lower envelope of parabolas (Felzenszwalb and Huttenlocher 2012), ``v``, ``z`` scratch of n and n + 1."""
+    k = 0
+    v[0] = 0
+    z[0] = -np.inf
+    z[1] = np.inf
+    for q in range(1, n):
+        while True:  # z[0] = -inf ends it at k = 0 at the latest
+            p = v[k]
+            s = ((f[q] + q * q) - (f[p] + p * p)) / (2.0 * q - 2.0 * p)
+            if s > z[k]:
+                break
+            k -= 1
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = np.inf
+    k = 0
+    for j in range(n):
+        while z[k + 1] < j:
+            k += 1
+        p = v[k]
+        d[j] = f[p] + (j - p) * (j - p)
+
+
+@njit(cache=True, nogil=True)
+def _distance_sq(inside):
+    """Squared Euclidean distance (voxels^2, exact integers in float64) of each voxel of ``inside``
+    (nx, ny, nz) bool to the nearest False voxel, which every line along an axis must hold (a padded
+    box): ``scipy.ndimage.distance_transform_edt(inside) ** 2``'s integers, by one pass per axis."""
+    nx, ny, nz = inside.shape
+    g = np.empty((nx, ny, nz))
+    big = float(nx * nx + ny * ny + nz * nz)
+    for i in range(nx):  # along z: the distance to the nearest False voxel of the line, squared
+        for j in range(ny):
+            last = -1
+            for k in range(nz):
+                if not inside[i, j, k]:
+                    last = k
+                    g[i, j, k] = 0.0
+                else:
+                    g[i, j, k] = big if last < 0 else float((k - last) * (k - last))
+            last = -1
+            for k in range(nz - 1, -1, -1):
+                if not inside[i, j, k]:
+                    last = k
+                elif last >= 0:
+                    g[i, j, k] = min(g[i, j, k], float((last - k) * (last - k)))
+    m = max(nx, ny)
+    f = np.empty(m)
+    d = np.empty(m)
+    v = np.empty(m, dtype=np.int64)
+    z = np.empty(m + 1)
+    for i in range(nx):  # along y
+        for k in range(nz):
+            for j in range(ny):
+                f[j] = g[i, j, k]
+            _envelope(f, ny, d, v, z)
+            for j in range(ny):
+                g[i, j, k] = d[j]
+    for j in range(ny):  # along x
+        for k in range(nz):
+            for i in range(nx):
+                f[i] = g[i, j, k]
+            _envelope(f, nx, d, v, z)
+            for i in range(nx):
+                g[i, j, k] = d[i]
+    return g
+
+
+def _distance(inside, vs):
+    """``scipy.ndimage.distance_transform_edt(np.pad(inside, 1), sampling=vs)[1:-1, 1:-1, 1:-1]`` (mm, float64).
+
+    When ``vs`` is a power of two (the default centreline voxels: 0.5, 1, 2 mm) the exact squared
+    distances in voxels (:func:`_distance_sq`), ``sqrt``, times ``vs``: scipy's values to the bit (scaling
+    by a power of two is exact), at 1 mm on the sample 0.054 -> 0.010 s CPU and without scipy's feature
+    transform (three int32 arrays of the box).  Other sizes: scipy itself (it scales each axis's offset
+    before squaring; the product here was 1-2 ulp off, which moved the sections' windows and their
+    diameters by 1e-12 mm at 0.7 mm).  tests/test_surface_aaa.py checks both.
+    """
+    if math.frexp(vs)[0] != 0.5:
+        from scipy import ndimage
+
+        return ndimage.distance_transform_edt(np.pad(inside, 1), sampling=vs)[1:-1, 1:-1, 1:-1]
+    return np.sqrt(_distance_sq(np.pad(inside, 1)))[1:-1, 1:-1, 1:-1] * vs
+
+
 def _centreline(inside, vs, smooth_mm, step_mm):
     from scipy import ndimage
 
     lo = np.argwhere(inside).min(axis=0)
     hi = np.argwhere(inside).max(axis=0) + 1
     sub = inside[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
-    dist = ndimage.distance_transform_edt(np.pad(sub, 1), sampling=vs)[1:-1, 1:-1, 1:-1]
+    dist = _distance(sub, vs)
     cost = np.where(sub, 1.0 / np.maximum(dist, 1e-3) ** 2, np.inf)  # outside: never entered (nor explored)
     # main axis: the principal direction of the lumen, oriented so its largest component is positive
     ijk = np.argwhere(sub)
