@@ -119,6 +119,16 @@ def test_constant_difference_is_an_error():
         auto_threshold(np.zeros((10, 10)))
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_difference_is_an_error(bad):
+    """One NaN or infinity anywhere among finite values is refused (auto_threshold reads it from the
+    minimum and maximum, without an isfinite pass)."""
+    d = np.random.default_rng(0).random((12, 9)).astype(np.float32) * 50
+    d[7, 4] = bad
+    with pytest.raises(ValueError, match="non-finite"):
+        auto_threshold(d)
+
+
 def test_warm_kernels_load_the_specialisations_the_stage_calls():
     """``warm_kernels`` (the reconstruct command runs it on a thread while the session loads) must load the
     very specialisations the stage then calls: a tiny input of another dtype or layout would load one the

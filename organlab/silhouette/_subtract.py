@@ -189,9 +189,10 @@ def auto_threshold(diff: np.ndarray, *, method: Literal["li", "otsu", "triangle"
     from skimage import filters
 
     d = np.asarray(diff, dtype=np.float32)
-    if not np.isfinite(d).all():
+    lo, hi = float(d.min()), float(d.max())  # NaN propagates into both, an infinity into one: no isfinite pass
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError("difference image has non-finite values")
-    if float(d.max()) - float(d.min()) < 1e-6:
+    if hi - lo < 1e-6:
         raise ValueError("difference image is constant: the view does not differ from the background")
     funcs = {"li": _li_threshold, "otsu": filters.threshold_otsu, "triangle": filters.threshold_triangle}
     if method not in funcs:
