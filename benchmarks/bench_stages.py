@@ -185,7 +185,8 @@ def print_whole(commands, repeat):
             c = commands[vs]
             what = f"{vs:g} mm: target under {sec:g} s" + (f" and {mb:g} MB" if mb else "")
             g = c["program"]
-            print(f"  issue 24, {what}: the program: wall {g['wall']:.2f} s, CPU {g['cpu']:.2f} s, peak {g['peak_mb']:.0f} MB; "
+            print(f"  issue 24, {what}: the program: wall {g['wall']:.2f} s, CPU {g['cpu']:.2f} s, "
+                  f"peak {g['peak_mb']:.0f} MB; "
                   f"step by step: wall {c['process_wall']:.2f} s, CPU {c['process_cpu']:.2f} s, "
                   f"peak {c['process_peak_mb']:.0f} MB (on a shared machine read the CPU; on a quiet one the wall)")
     print(f"load average after: {open('/proc/loadavg').read().split()[:3]}")

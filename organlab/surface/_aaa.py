@@ -239,9 +239,9 @@ def _distance(inside, vs):
     distances in voxels (:func:`_distance_sq`), ``sqrt``, times ``vs``: scipy's values to the bit (scaling
     by a power of two is exact), at 1 mm on the sample 0.054 -> 0.010 s CPU and without scipy's feature
     transform (three int32 arrays of the box): on a 120 x 120 x 360 box (a swollen tube, about the sample's
-    centreline box at 0.25 mm) 1.33-1.47 -> 0.34-0.42 s CPU, traced peak 264 -> 86 MB.  Other sizes: scipy itself (it scales each axis's offset
-    before squaring; the product here was 1-2 ulp off, which moved the sections' windows and their
-    diameters by 1e-12 mm at 0.7 mm).  tests/test_surface_aaa.py checks both.
+    centreline box at 0.25 mm) 1.33-1.47 -> 0.34-0.42 s CPU, traced peak 264 -> 86 MB.  Other sizes: scipy
+    itself (it scales each axis's offset before squaring; the product here was 1-2 ulp off, which moved the
+    sections' windows and their diameters by 1e-12 mm at 0.7 mm).  tests/test_surface_aaa.py checks both.
     """
     if math.frexp(vs)[0] != 0.5:
         from scipy import ndimage
