@@ -16,7 +16,7 @@ import organlab as ol
 from organlab.cli import main
 from organlab.errors import CalibrationError
 from organlab.surface import read_ply
-from tests._shared_data import SAMPLE, copy_sample  # noqa: F401 (SAMPLE: for the tests other branches add)
+from tests._shared_data import SAMPLE, copy_sample, sample_calibrated  # noqa: F401 (SAMPLE: for the tests other branches add)
 
 pytestmark = pytest.mark.slow
 
@@ -38,11 +38,14 @@ def _writable(root):
 
 @pytest.fixture(scope="module")
 def sample(tmp_path_factory):
-    """A read-only copy of the sample session, without calibration.json, and its calibration."""
+    """A read-only copy of the sample session, without calibration.json, and its calibration (set-up for the
+    tests that do not compute one themselves: the one computed once per run for test_trust.py and test_sweep.py,
+    tests/_shared_data.sample_calibrated, about 6 s CPU saved)."""
     root = tmp_path_factory.mktemp("api") / "aaa"
     copy_sample(root)
     _read_only(root)
-    yield root, ol.calibrate(root)
+    cal = ol.Calibration.load(sample_calibrated(tmp_path_factory) / "calibration.json", image_size=(640, 480))
+    yield root, cal
     _writable(root)
 
 

@@ -176,7 +176,8 @@ def test_simulated_capture_calibrates_and_reconstructs_to_the_true_volume(tmp_pa
     assert doc["capture"]["complete"] and "camera" not in doc  # intrinsics to be calibrated from the hand-held images
     assert [a for _, a, _ in seen] == [20.0 * i for i in range(18)] and seen[0][2] == (480, 640, 3)
     assert [e["angle_deg"] for e in doc["calibration"]["turntable_images"]] == [e["angle_deg"] for e in doc["views"]]
-    # the audit measured every stop from its board image: within 0.05 deg here (measured max 0.01 deg at 640x480)
+    # the audit measured every stop from its board image: within 0.05 deg here (measured max 0.01 deg at 640x480
+    # earlier; 0.048 deg on 2026-12-03, twice, by a script with this test's settings: near the bound, to look into)
     errors = [abs(a["error_deg"]) for a in doc["capture"]["audit"]]
     assert len(errors) == 18 and max(errors) < 0.05 and not doc["capture"]["flagged"]
     log = (root / "capture" / "serial.log").read_text()

@@ -321,13 +321,15 @@ def test_workers_load_pymeshlab_in_their_main_thread_and_close_without_a_heap_er
     pymeshlab in its main thread as it starts (organlab.batch._run.start_libraries, a worker plugin).
     """
     root, _ = grooved
+    # two finished hulls, a task for each worker (the colouring, also run here until 2026-12-03, loads nothing more
+    # into a worker: the start-up plugin has loaded pymeshlab in both before their first task)
     cmd = [sys.executable, "-m", "organlab", "sweep", str(root), "--out", str(tmp_path / "out"), "--threshold", "10,20",
-           "--method", "hull,coloring", "--voxel-size", "4", "--workers", "2", "--quiet"]
+           "--method", "hull", "--voxel-size", "4", "--workers", "2", "--quiet"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode == 0, r.stderr[-3000:]
     assert "malloc" not in r.stderr and "free()" not in r.stderr and "Aborted" not in r.stderr, r.stderr[-3000:]
     df = pd.read_csv(tmp_path / "out" / "summary.csv")
-    assert len(df) == 4 and (df["status"] == "done").all()
+    assert len(df) == 2 and (df["status"] == "done").all()
     assert all(json.loads((tmp_path / "out" / "results" / n / "report.json").read_text())["surface"] for n in df["name"])
 
 
