@@ -298,22 +298,32 @@ class SessionViewer:
             lap("stream")
         shown = {"n": 0}
 
+        def voxels_first():
+            """Whether the voxels are shown as soon as carved: when displayed, or nothing else is shown yet."""
+            return self.controls.show_voxels or "mesh" not in self.live._handles
+
         def on_stage(name, result):
             if name == "calibration" or (name == "coloring" and result is None):  # kept / no colouring
                 return
             lap(name)
+            if cancel():  # superseded by a newer request: nothing of it is sent (the engine stops at its next check)
+                return
             if name == "silhouettes":
                 self.status = f"{label}: carving"
-            elif name == "carving":  # voxels first
-                visible = self.controls.show_voxels or "mesh" not in self.live._handles
-                shown["n"] = self.live.set_voxels(result.occupancy, result.grid, visible=visible)
-                lap("voxels sent")
+            elif name == "carving":  # voxels first, when they are displayed
+                # hidden voxels (Display > Model: mesh) are sent after the full update: making them reads the
+                # occupancy, which the engine otherwise makes after the surface, and they would wait for it
+                if voxels_first():
+                    shown["n"] = self.live.set_voxels(result.occupancy, result.grid, visible=True)
+                    shown["voxels"] = True
+                    lap("voxels sent")
                 self.status = f"{label}: surface"
             elif name == "coloring" and result is not None:
-                visible = self.controls.show_voxels or "mesh" not in self.live._handles
-                shown["n"] = self.live.set_voxels(result.occupancy, self.engine.grid(st), result.colors,
-                                                  visible=visible)
-                lap("voxels sent")
+                if voxels_first():
+                    shown["n"] = self.live.set_voxels(result.occupancy, self.engine.grid(st), result.colors,
+                                                      visible=True)
+                    shown["voxels"] = True
+                    lap("voxels sent")
             elif name == "mesh":  # marching cubes: shown before it is finished
                 self.live.set_mesh(result, visible=self.controls.show_mesh)
                 self.live.set_visible("voxels", self.controls.show_voxels)
@@ -327,8 +337,11 @@ class SessionViewer:
         self.status = f"{label}: silhouettes"
         self.controls.show_status(self.status)
         rec = self.engine.run(st, on_stage=on_stage, cancel=cancel)
-        res = Result(rec, gen, time.perf_counter() - t0, tm, shown["n"])
         check()  # a newer request arrived meanwhile: not shown
+        if not shown.get("voxels"):  # hidden while the surface was made: sent now, for the display's switch
+            shown["n"] = self.live.set_voxels(rec.occupancy, rec.grid, rec.colors, visible=self.controls.show_voxels)
+            lap("voxels sent")
+        res = Result(rec, gen, time.perf_counter() - t0, tm, shown["n"])
         self.result = res
         if label != "start-up":
             self._runs += 1
