@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, TimeoutError as FuturesTimeout
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -1005,6 +1005,8 @@ class Engine:
             t0 = time.perf_counter()
             return self._run_poses(settings, clock, given, None), time.perf_counter() - t0
 
+        # the two threads share no state (the poses stage reads the views, the carving writes its own grid); numba's
+        # threading layer is OpenMP (organlab/__init__.py), thread-safe, and the poses stage runs no numba kernel
         pool = ThreadPoolExecutor(1, thread_name_prefix="organlab-poses")
         job = pool.submit(poses)
         pool.shutdown(wait=False)  # a cancelled run does not wait for it (its result is not kept)
@@ -1014,7 +1016,12 @@ class Engine:
         except OrganlabError:  # e.g. nothing left with these cameras: the run carves after the poses, as before
             carved = None
         seconds = time.perf_counter() - t0
-        refined, poses_seconds = job.result()
+        while True:  # a newer request does not wait for the poses stage (its thread ends on its own)
+            try:
+                refined, poses_seconds = job.result(timeout=0.05)
+                break
+            except FuturesTimeout:
+                clock.check()
         self._keep("poses", self.key("poses", settings), refined, poses_seconds)
         if carved is not None and (refined is None or _same_cameras(refined.cameras, given["calibration"].cameras)):
             self._keep("carving", self.key("carving", settings), carved, seconds)

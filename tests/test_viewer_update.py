@@ -79,3 +79,37 @@ def test_carving_redone_when_the_poses_stage_corrects_the_cameras(posed, monkeyp
     given = Engine(posed).run(st, until="carving")
     assert not np.array_equal(given.occupancy, b.occupancy)
     assert b.cameras[0].t[0] != given.cameras[0].t[0]
+
+
+def test_a_newer_request_does_not_wait_for_the_poses_stage(posed, monkeypatch):
+    """Cancelled once the carving is done, while the poses stage still runs: the run stops, the poses thread is
+    left to end on its own and nothing of it is kept."""
+    import threading
+
+    from organlab.engine import Cancelled
+
+    real_poses, real_carving = engine_module.refine_poses, Engine._run_carving
+    release, carved = threading.Event(), threading.Event()
+
+    def blocked(*a, **k):
+        assert release.wait(60)  # held until the run has returned
+        return real_poses(*a, **k)
+
+    def carving(self, *a, **k):  # the carving done: cancelled from now on (the run waits for the poses stage)
+        out = real_carving(self, *a, **k)
+        carved.set()
+        return out
+
+    monkeypatch.setattr(engine_module, "_CARVE_BESIDE_POSES", True)
+    monkeypatch.setattr(engine_module, "refine_poses", blocked)
+    monkeypatch.setattr(Engine, "_run_carving", carving)
+    eng = Engine(posed)
+    st = Settings(voxel_size=3.0, finish=False)
+    try:
+        with pytest.raises(Cancelled):
+            eng.run(st, until="carving", cancel=carved.is_set)
+        assert carved.is_set() and not release.is_set()  # it returned while the poses stage was still held
+    finally:
+        release.set()
+    assert not eng.cached("poses", st) and not eng.cached("carving", st)
+    assert eng.computed["poses"] == eng.computed["carving"] == 0
