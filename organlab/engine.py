@@ -993,11 +993,13 @@ class Engine:
         each new threshold, and keeps them); the carving made with them is then the one it would make after
         the poses stage, and is kept as such.  When the poses stage corrects the cameras, the carving made
         beside it is dropped and the run carves again with the corrected ones (as without this).  Nothing
-        is done when either stage is kept or the poses stage does not run (some views, no session, 'off').
+        is done when either stage is kept or the poses stage does not run (some views, no session, 'off'), nor
+        on grids over ``_CONCURRENT_MEASURES_VOXELS`` (0.75 mm on the sample), where the carving's memory peak
+        would add to the poses stage's (its per-view outlines) instead of following it.
         """
         if (self.session is None or len(self.views) != len(self.session.views) or settings.refine_poses == "off"
                 or self.cached("poses", settings) or self.cached("carving", settings)
-                or not _CARVE_BESIDE_POSES):
+                or not _CARVE_BESIDE_POSES or self.grid(settings).n_voxels > _CONCURRENT_MEASURES_VOXELS):
             return
         given = {"calibration": out["calibration"], "silhouettes": out["silhouettes"]}
 

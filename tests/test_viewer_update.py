@@ -113,3 +113,10 @@ def test_a_newer_request_does_not_wait_for_the_poses_stage(posed, monkeypatch):
         release.set()
     assert not eng.cached("poses", st) and not eng.cached("carving", st)
     assert eng.computed["poses"] == eng.computed["carving"] == 0
+
+
+def test_big_grids_carve_after_the_poses_stage(posed, monkeypatch):
+    """Over _CONCURRENT_MEASURES_VOXELS (here lowered to 1000 voxels) the memory peaks would add up: in turn."""
+    monkeypatch.setattr(engine_module, "_CONCURRENT_MEASURES_VOXELS", 1000)
+    _, _, threads = _run(posed, True, monkeypatch, Settings(voxel_size=3.0, finish=False))
+    assert threads == ["MainThread"]
