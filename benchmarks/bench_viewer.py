@@ -9,7 +9,9 @@
    received the last message of the update: re-threshold 36 silhouettes,
    hull field, occupancy, marching cubes, finish_surface and (an AAA session)
    measure_aaa, per-view agreement, and sending
-   voxels + mesh + read-outs.  A different threshold each time (no cache hit).
+   voxels + mesh + read-outs.  A different threshold each time (no cache hit);
+   then the slider back to a value shown two requests ago (the viewer keeps
+   the engine's stages of its recent settings: no stage runs).
 2. Streaming: ``LiveView.set_voxels`` of a model with about 100 k surface
    voxels (a sphere, alternating between two radii so every update differs),
    updates per second until the client received them all, and bytes received
