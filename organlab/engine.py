@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor, TimeoutError as FuturesTimeout
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -253,8 +253,6 @@ STAGES: tuple[str, ...] = tuple(DEPENDS)
 
 #: Grids up to this many voxels (0.75 mm on the sample's roi) measure the AAA while the surface is finished.
 _CONCURRENT_MEASURES_VOXELS = 16_000_000
-#: Carve beside the poses stage, with the cameras it was given (kept when it keeps them: Engine._carve_beside_poses).
-_CARVE_BESIDE_POSES = True
 
 
 # ---------------------------------------------------------------- typed stage results
@@ -944,8 +942,6 @@ class Engine:
         out = {}
         for name in STAGES:
             clock.check()
-            if name == "poses" and until not in ("silhouettes", "poses"):
-                self._carve_beside_poses(settings, clock, out)
             out[name] = self._stage(name, settings, clock, out, notify)
             notify(name, out[name])
             if name == until:
@@ -969,12 +965,7 @@ class Engine:
             return hit[1]
         t0 = time.perf_counter()
         result = getattr(self, f"_run_{name}")(settings, clock, out or {}, notify or (lambda n, r: None))
-        self._keep(name, key, result, time.perf_counter() - t0)
-        return result
-
-    def _keep(self, name, key, result, seconds):
-        """Keep a stage's result (computed, not cancelled) for ``key``; the kept results after it are dropped."""
-        # the kept results after it are stale (their keys hold the old settings)
+        # done (not cancelled): the kept results after it are stale (their keys hold the old settings)
         for later in STAGES[STAGES.index(name):]:
             self._cache.pop(later, None)
             self.timings.pop(later, None)
@@ -982,51 +973,10 @@ class Engine:
             if result.seconds is not None:
                 self.timings[name] = result.seconds
         elif result is not None:  # (no colouring for method 'hull': not timed)
-            self.timings[name] = seconds
+            self.timings[name] = time.perf_counter() - t0
         self.computed[name] += 1
         self._cache[name] = (key, result)
-
-    def _carve_beside_poses(self, settings, clock, out):
-        """Run the poses stage in a second thread while carving with the cameras it was given.
-
-        The poses stage mostly keeps the cameras (every view agrees: on the sample it checks, 0.4-0.5 CPU s at
-        each new threshold, and keeps them); the carving made with them is then the one it would make after
-        the poses stage, and is kept as such.  When the poses stage corrects the cameras, the carving made
-        beside it is dropped and the run carves again with the corrected ones (as without this).  Nothing
-        is done when either stage is kept or the poses stage does not run (some views, no session, 'off'), nor
-        on grids over ``_CONCURRENT_MEASURES_VOXELS`` (0.75 mm on the sample), where the carving's memory peak
-        would add to the poses stage's (its per-view outlines) instead of following it.
-        """
-        if (self.session is None or len(self.views) != len(self.session.views) or settings.refine_poses == "off"
-                or self.cached("poses", settings) or self.cached("carving", settings)
-                or not _CARVE_BESIDE_POSES or self.grid(settings).n_voxels > _CONCURRENT_MEASURES_VOXELS):
-            return
-        given = {"calibration": out["calibration"], "silhouettes": out["silhouettes"]}
-
-        def poses():
-            t0 = time.perf_counter()
-            return self._run_poses(settings, clock, given, None), time.perf_counter() - t0
-
-        # the two threads share no state (the poses stage reads the views, the carving writes its own grid); numba's
-        # threading layer is OpenMP (organlab/__init__.py), thread-safe, and the poses stage runs no numba kernel
-        pool = ThreadPoolExecutor(1, thread_name_prefix="organlab-poses")
-        job = pool.submit(poses)
-        pool.shutdown(wait=False)  # a cancelled run does not wait for it (its result is not kept)
-        t0 = time.perf_counter()
-        try:
-            carved = self._run_carving(settings, clock, given, None)
-        except OrganlabError:  # e.g. nothing left with these cameras: the run carves after the poses, as before
-            carved = None
-        seconds = time.perf_counter() - t0
-        while True:  # a newer request does not wait for the poses stage (its thread ends on its own)
-            try:
-                refined, poses_seconds = job.result(timeout=0.05)
-                break
-            except FuturesTimeout:
-                clock.check()
-        self._keep("poses", self.key("poses", settings), refined, poses_seconds)
-        if carved is not None and (refined is None or _same_cameras(refined.cameras, given["calibration"].cameras)):
-            self._keep("carving", self.key("carving", settings), carved, seconds)
+        return result
 
     # ------------------------------------------------------------ the stages
     def _run_calibration(self, settings, clock, out, notify):
@@ -1422,14 +1372,6 @@ def _cameras(out):
     calibration's."""
     poses = out.get("poses")
     return out["calibration"].cameras if poses is None else poses.cameras
-
-
-def _same_cameras(a, b) -> bool:
-    """Whether two lists of cameras are equal, array for array."""
-    return len(a) == len(b) and all(
-        x is y or (x.image_size == y.image_size and all(np.array_equal(getattr(x, f), getattr(y, f))
-                                                        for f in ("K", "dist", "R", "t")))
-        for x, y in zip(a, b))
 
 
 def _hashable(v):
