@@ -9,14 +9,18 @@
    received the last message of the update: re-threshold 36 silhouettes,
    hull field, occupancy, marching cubes, finish_surface and (an AAA session)
    measure_aaa, per-view agreement, and sending
-   voxels + mesh + read-outs.  A different threshold each time (no cache hit).
+   voxels + mesh + read-outs.  A different threshold each time (no cache hit);
+   then the slider back to a value shown two requests ago (the viewer keeps
+   the engine's stages of its recent settings: no stage runs).
 2. Streaming: ``LiveView.set_voxels`` of a model with about 100 k surface
    voxels (a sphere, alternating between two radii so every update differs),
    updates per second until the client received them all, and bytes received
    per update.
 
 Wall-clock figures depend on what else runs on the machine; the CPU seconds
-of the process (all its threads, the probe's included) are printed too.
+of the process (all its threads, the probe's included) are printed too, and
+the pieces of the fastest full update (each engine stage function and scene
+send, wall and CPU of the thread that ran it: :class:`Pieces`).
 
 Usage::
 
@@ -76,10 +80,62 @@ class Probe:
         self._t.join(2)
 
 
+class Pieces:
+    """Wall and CPU seconds of each piece of a slider move's update, timed in the thread that runs it.
+
+    The engine's stage functions (as the engine module calls them) and the scene's sends are wrapped;
+    ``time.thread_time`` counts the calling thread only (numba's and the silhouettes' worker threads are
+    in the process CPU the bench prints, not here).
+    """
+
+    ENGINE = ("refine_poses", "hull_field", "carve", "mesh_from_field", "finish_surface", "measure_aaa",
+              "view_agreement")
+    SCENE = ("set_voxels", "set_mesh", "set_aaa")
+
+    def __init__(self):
+        import organlab.engine as engine
+        from organlab.viewer._live import LiveView
+
+        self.rows = []
+        self._undo = []
+        for owner, names in ((engine, self.ENGINE), (LiveView, self.SCENE)):
+            for name in names:
+                self._wrap(owner, name)
+
+    def _wrap(self, owner, name):
+        import functools
+
+        f = getattr(owner, name)
+
+        @functools.wraps(f)
+        def timed(*a, **k):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return f(*a, **k)
+            finally:
+                self.rows.append((name, time.perf_counter() - t0, time.thread_time() - c0,
+                                  threading.current_thread().name))
+
+        setattr(owner, name, timed)
+        self._undo.append((owner, name, f))
+
+    def restore(self):
+        for owner, name, f in self._undo:
+            setattr(owner, name, f)
+
+    def line(self, rows):
+        out = []
+        for name, wall, cpu, thread in rows:
+            where = "" if thread.startswith("organlab-viewer") else f" [{thread.split('_')[0]}]"
+            out.append(f"{name} {wall:.3f}/{cpu:.3f}{where}")
+        return ", ".join(out)
+
+
 def bench_slider(session, sizes, repeat):
     from organlab.viewer import SessionViewer
 
     for vs in sizes:
+        pieces = Pieces()
         app = SessionViewer(session, voxel_size=vs, port=0, stream=False)
         assert app.wait(timeout=300), app.errors
         probe = Probe(app.live.port)
@@ -89,8 +145,9 @@ def bench_slider(session, sizes, repeat):
         app.wait(app.rerun(threshold=20.0))
         first, first_cpu = probe.quiet() - t0, time.process_time() - c0
         first_timings = dict(app.result.timings)
-        totals, jobs, sent, scene, full, cpu = [], [], [], [], [], []
+        totals, jobs, sent, scene, full, cpu, rows = [], [], [], [], [], [], []
         for k in range(repeat):
+            pieces.rows = []
             b0 = probe.bytes
             c0 = time.process_time()
             t0 = time.perf_counter()
@@ -103,7 +160,14 @@ def bench_slider(session, sizes, repeat):
             scene.append(app.result.timings["scene updated"])
             full.append(app.result.timings.get("surface shown", np.nan))
             sent.append(probe.bytes - b0)
+            rows.append(list(pieces.rows))
         r = app.result
+        pieces.restore()
+        # the slider back to a value shown two requests ago: the viewer's recent results (no stage runs)
+        c0, t0 = time.process_time(), time.perf_counter()
+        app.wait(app.rerun(threshold=18.0 + 0.5 * (repeat - 2) + 0.25 if repeat >= 2 else 20.0))
+        back, back_cpu = probe.quiet() - t0, time.process_time() - c0
+        back_full = app.result.timings.get("surface shown", np.nan)
         print(f"slider -> scene at {vs:g} mm ({r.grid.n_voxels / 1e6:.2f} M voxels, {r.n_surface_voxels:,} surface "
               f"voxels, {len(r.mesh.faces):,} faces): median {np.median(totals):.3f} s "
               f"(min {min(totals):.3f}, max {max(totals):.3f}) until the client received the last message; "
@@ -112,10 +176,15 @@ def bench_slider(session, sizes, repeat):
               f"{np.median(sent) / 1e6:.2f} MB sent; {np.median(cpu):.3f} CPU s (all threads of this process)")
         print(f"   first slider move after start: {first:.3f} s ({first_cpu:.3f} CPU s), "
               f"{first / np.median(totals):.2f}x the median of the next ones ({first_cpu / np.median(cpu):.2f}x in CPU)")
+        print(f"   slider back to a recent value: finished surface + AAA measures queued after {back_full:.3f} s, "
+              f"client's last message after {back:.3f} s ({back_cpu:.3f} CPU s)")
         print(f"   compiling numba kernels in this viewer (start-up and slider moves): {app.compiling.seconds:.2f} s "
               f"({app.compiling.count} kernels; 0 once the cache is warm)")
         print("   first run: " + ", ".join(f"{k} {v:.3f} s" for k, v in first_timings.items()))
         print("   last run: " + ", ".join(f"{k} {v:.3f} s" for k, v in r.timings.items()))
+        best = int(np.argmin(full))
+        print(f"   pieces of the fastest full update ({full[best]:.3f} s; wall/thread-CPU s, in the viewer's worker "
+              f"unless [thread]): " + pieces.line(rows[best]))
         probe.close()
         app.stop()
 

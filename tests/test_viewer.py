@@ -510,3 +510,29 @@ def test_border_backdrop_estimated_over_every_view(sample, tmp_path):
         np.testing.assert_allclose(v.engine.silhouette_model.background, SilhouetteModel.from_session(s).background)
     finally:
         v.stop()
+
+
+def test_going_back_to_a_recent_setting_runs_no_stage(app):
+    """The slider back to a value shown a few requests ago: the engine takes that result's stages back
+    (Engine.keep) and re-runs none; the same surface is shown again."""
+    from organlab.viewer._app import RECENT
+
+    def rerun(**kw):
+        g = app.rerun(**kw)
+        assert app.wait(g, timeout=120) and not app.errors and app.result.generation == g
+        return app.result
+
+    first = rerun(threshold=30.0)
+    rerun(threshold=32.0)
+    ran = dict(app.engine.computed)
+    again = rerun(threshold=30.0)
+    assert app.engine.computed == ran  # no stage ran
+    assert again.mesh is first.mesh and again.aaa is first.aaa
+    np.testing.assert_array_equal(app.live._handles["mesh"].vertices, first.mesh.vertices.astype(np.float32))
+    np.testing.assert_array_equal(again.agreement, first.agreement)
+    # only the RECENT newest settings are kept: after RECENT others, 30 is computed again
+    for k in range(RECENT):
+        rerun(threshold=34.0 + k)
+    n = app.engine.computed["silhouettes"]
+    rerun(threshold=30.0)
+    assert app.engine.computed["silhouettes"] == n + 1

@@ -11,6 +11,7 @@ running one.  No stage runs here: this is a face.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
 from pathlib import Path
@@ -156,6 +157,13 @@ class Result:
         return None if f is None else np.asarray(f.iou, dtype=np.float64)
 
 
+#: The engine's stage results of this many recent settings are kept (:meth:`organlab.engine.Engine.kept`):
+#: going back to one (the slider back to a value, *Automatic threshold* ticked again) runs no stage.
+RECENT = 3
+#: ... for grids up to this many voxels (0.75 mm on the sample's roi); above, one result's arrays are big.
+RECENT_MAX_VOXELS = 16_000_000
+
+
 class SessionViewer:
     """A live viewer of one session (``organlab view``).
 
@@ -197,6 +205,7 @@ class SessionViewer:
         roi = self.engine.roi(Settings())
         self.settings = Settings(voxel_size=float(voxel_size), roi=roi).validate()
         self.result = None
+        self._recent = collections.OrderedDict()  # engine.key('checks', settings) -> engine.kept('checks')
         self.status = "starting"
         self.errors = []
         self._runs = 0  # re-runs shown; the one running is "run {self._runs + 1}"
@@ -298,22 +307,32 @@ class SessionViewer:
             lap("stream")
         shown = {"n": 0}
 
+        def voxels_first():
+            """Whether the voxels are shown as soon as carved: when displayed, or nothing else is shown yet."""
+            return self.controls.show_voxels or "mesh" not in self.live._handles
+
         def on_stage(name, result):
             if name == "calibration" or (name == "coloring" and result is None):  # kept / no colouring
                 return
             lap(name)
+            if cancel():  # superseded by a newer request: nothing of it is sent (the engine stops at its next check)
+                return
             if name == "silhouettes":
                 self.status = f"{label}: carving"
-            elif name == "carving":  # voxels first
-                visible = self.controls.show_voxels or "mesh" not in self.live._handles
-                shown["n"] = self.live.set_voxels(result.occupancy, result.grid, visible=visible)
-                lap("voxels sent")
+            elif name == "carving":  # voxels first, when they are displayed
+                # hidden voxels (Display > Model: mesh) are sent after the full update: making them reads the
+                # occupancy, which the engine otherwise makes after the surface, and they would wait for it
+                if voxels_first():
+                    shown["n"] = self.live.set_voxels(result.occupancy, result.grid, visible=True)
+                    shown["voxels"] = True
+                    lap("voxels sent")
                 self.status = f"{label}: surface"
             elif name == "coloring" and result is not None:
-                visible = self.controls.show_voxels or "mesh" not in self.live._handles
-                shown["n"] = self.live.set_voxels(result.occupancy, self.engine.grid(st), result.colors,
-                                                  visible=visible)
-                lap("voxels sent")
+                if voxels_first():
+                    shown["n"] = self.live.set_voxels(result.occupancy, self.engine.grid(st), result.colors,
+                                                      visible=True)
+                    shown["voxels"] = True
+                    lap("voxels sent")
             elif name == "mesh":  # marching cubes: shown before it is finished
                 self.live.set_mesh(result, visible=self.controls.show_mesh)
                 self.live.set_visible("voxels", self.controls.show_voxels)
@@ -326,9 +345,16 @@ class SessionViewer:
 
         self.status = f"{label}: silhouettes"
         self.controls.show_status(self.status)
+        recent = self._recent.get(self.engine.key("checks", st))
+        if recent is not None:  # shown a few requests ago: the engine takes its stages back and re-runs none
+            self.engine.keep(recent)
         rec = self.engine.run(st, on_stage=on_stage, cancel=cancel)
-        res = Result(rec, gen, time.perf_counter() - t0, tm, shown["n"])
         check()  # a newer request arrived meanwhile: not shown
+        self._remember(st, rec)
+        if not shown.get("voxels"):  # hidden while the surface was made: sent now, for the display's switch
+            shown["n"] = self.live.set_voxels(rec.occupancy, rec.grid, rec.colors, visible=self.controls.show_voxels)
+            lap("voxels sent")
+        res = Result(rec, gen, time.perf_counter() - t0, tm, shown["n"])
         self.result = res
         if label != "start-up":
             self._runs += 1
@@ -337,6 +363,16 @@ class SessionViewer:
             f" ({compiled:.1f} s of it compiling numba kernels, once)" if compiled >= 0.05 else "")
         self.controls.show_result(res)
         self.pose_frustums.show(self.cameras, rec.cameras, (rec.report or {}).get("poses"))
+
+    def _remember(self, st, rec):
+        """Keep the engine's stages of the result shown (the :data:`RECENT` newest settings)."""
+        if rec.grid is None or rec.grid.n_voxels > RECENT_MAX_VOXELS:
+            return
+        key = self.engine.key("checks", st)
+        self._recent[key] = self.engine.kept("checks")
+        self._recent.move_to_end(key)
+        while len(self._recent) > RECENT:
+            self._recent.popitem(last=False)
 
     def _stream(self, st, cancel):
         """Carve view by view, showing each view and the hull so far (start-up)."""
