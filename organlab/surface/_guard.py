@@ -169,12 +169,13 @@ def insert_lost(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: fl
                           tol_mm=0.1 * float(voxel_size), rounds=12, only=only)
     return out, inserted
 def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: float, target_mm: float,
-                 rounds: int = 4, deviation: dict | None = None):
+                 rounds: int = 4, deviation: dict | None = None, distances: tuple | None = None):
     """``(Mesh, record, deviation)``: :func:`insert_lost` then :func:`pull_back`, ``rounds`` times at most, until the
     surface lies within 1 voxel of ``reference`` both ways; the closest of the rounds' surfaces (by the larger
     maximum, :func:`._deviation.surface_deviation`), or ``mesh`` itself when none is closer or none keeps
     ``min_angle`` (or ``mesh``'s own smallest angle, if lower).  ``deviation``: ``mesh``'s, if known; the one
-    returned is the result's.
+    returned is the result's; ``distances``: ``mesh``'s vertices' distances to ``reference`` and ``reference``'s
+    vertices' to ``mesh``, mm, if known (:func:`._deviation._distances`).
 
     Local: the points more than :data:`LIMIT_VOXELS` apart are found once over both whole surfaces; the rounds
     then test and move only the finished faces within a few edges of them and the raw vertices near them
@@ -192,8 +193,11 @@ def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: f
     if best_max < 1.0:
         return mesh, record, best_dev
     # where the two surfaces part: the raw vertices the finished surface lost, the finished vertices off the raw
-    _, d_out, _ = ref.closest(V)
-    _, d_in, _ = _Surface(mesh).closest(ref.v)
+    if distances is None:
+        _, d_out, _ = ref.closest(V)
+        _, d_in, _ = _Surface(mesh).closest(ref.v)
+    else:
+        d_out, d_in = distances
     seeds = np.concatenate([ref.v[d_in > lim], V[d_out > lim]])
     if not len(seeds):  # only face centres are off: the whole-surface rounds' way has nothing to move either
         return mesh, record, best_dev
