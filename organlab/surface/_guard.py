@@ -8,6 +8,12 @@ vertices (the closest finished face split in three at each, then :func:`._remesh
 their rings; a move that would leave a face below the smallest angle (and worse than before) or turn a face over
 is halved, then refused.  :func:`keep_on_data` runs the rounds and keeps the closest surface that keeps the angle,
 closed and manifold.
+
+The step is local: the points more than :data:`LIMIT_VOXELS` apart are found once (from the distances
+``finish_surface`` measured the deviation with), and the rounds query and move only the finished faces within six
+median edges of them and the raw vertices near them; the kept surface is measured whole once.  The same surfaces
+as whole-surface rounds, bit for bit, on the 0.25 mm sample, the 1 mm dino and the finned balls of
+tests/test_finish_deviation.py; at 0.25 mm the step takes 3.4 s CPU instead of 19.4 (2026-12-03, load 17-19).
 """
 
 from __future__ import annotations
