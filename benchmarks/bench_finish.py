@@ -23,6 +23,12 @@ other figure the same (the dino's session now from organlab.datasets.write_middl
 Issue 24 (helper `finish`, 2026-12-03, load 7-12 on 2 cores, warm, alternating with fcc61ee): sample
 0.25 mm 17.9-19.3 s -> 12.5-14.9 s CPU (the sliver clean-up on regions around the bad faces, sweeps over
 the faces left to do), the same 143 608 faces bit for bit; 1 mm 0.80-0.86 s both, 20 930 faces, 32.2 deg.
+Issues 21/24 (helper `sliver`, 2026-12-03, load 13-23 on 2 cores, CPU best of 3 alternating with 8a93a8c, the
+raw surfaces of this script cached): the last step (stay_on_data) made local -- sample 0.25 mm 39.4 -> 24.1 s
+(the step 19.4 -> 3.4 s), the same 143 756 faces bit for bit, 21.06 deg, deviation 0.022 / 1.29 voxels (2.14
+before the step: still over 1, a sheet 0.12-0.2 mm thick at (-13.6, 6.6, 61.7) mm); dino 1 mm with the joint
+silhouettes (auto) 6.25 -> 5.34 s, the same 34 734 faces, 0.033 / 0.97 voxel, worst view IoU +0.0014; the
+1 mm sample unchanged (the step does not run there).
 """
 
 from __future__ import annotations

@@ -198,11 +198,20 @@ def surface_deviation(finished: Mesh, raw: Mesh, *, voxel_size: float, raw_surfa
         each direction's ``mean_voxels``, ``p99_voxels``, ``max_voxels``.
     """
     rs = _surface(raw) if raw_surface is None else raw_surface
+    return _deviation_figures(*_distances(finished, raw, rs), voxel_size)
+
+
+def _distances(finished, raw, rs):
+    """``(d_out, d_in)``, mm: ``finished``'s vertices then face centres to ``raw`` (prepared as ``rs``), and
+    ``raw``'s vertices to ``finished`` (:func:`surface_deviation`'s figures come from these)."""
     fv, ff = np.asarray(finished.vertices), np.asarray(finished.faces)
     pts = np.concatenate([fv, fv[ff].mean(axis=1)])
     _, d_out, _ = rs.closest(pts)
     _, d_in, _ = _Surface(finished).closest(raw.vertices)
+    return d_out, d_in
 
+
+def _deviation_figures(d_out, d_in, voxel_size):
     def figures(d):
         d = d / voxel_size
         return {"mean_voxels": round(float(d.mean()), 4), "p99_voxels": round(float(np.percentile(d, 99)), 4),

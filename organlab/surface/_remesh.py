@@ -582,7 +582,7 @@ def _rings(F, seed, rings, alive=None):
     return ring
 
 
-def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, rounds=8):
+def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, rounds=8, only=None):
     """Local clean-up of the faces still below ``min_angle``: flips that stay within ``tol_mm`` of the
     surface, collapses of their shortest edges that improve their stars, and a relaxation of their
     vertices kept only where it improves their stars' smallest angle.
@@ -593,6 +593,8 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
     """
     cos_bad = math.cos(math.radians(min_angle + 1.0))
     bad = _face_min_angles(V, F) < min_angle + 1.0
+    if only is not None:
+        bad &= only
     if not bad.any():
         return Mesh(V, F)
     V, F, H = np.array(V, dtype=np.float64), np.array(F, dtype=np.int64), np.array(H, dtype=np.float64)
@@ -753,12 +755,13 @@ def fit_faces(mesh: Mesh, reference: Mesh, *, min_angle: float = 20.0, factor: f
 
 
 def fix_slivers(mesh: Mesh, reference: Mesh, *, target_mm: float, min_angle: float = 20.0, tol_mm: float = 0.1,
-                rounds: int = 8, flip_deg: float = 35.0, turn_deg: float = 60.0) -> Mesh:
+                rounds: int = 8, flip_deg: float = 35.0, turn_deg: float = 60.0, only: np.ndarray | None = None) -> Mesh:
     """The local clean-up of :func:`adaptive_remesh`'s last step, on its own: faces below ``min_angle`` fixed
-    by flips within ``tol_mm`` of ``reference``, collapses and relaxation onto it (knife edges flattened)."""
+    by flips within ``tol_mm`` of ``reference``, collapses and relaxation onto it (knife edges flattened).
+    ``only``: ``(F,)`` bool, the faces below the angle to start from (default: every one)."""
     V = np.array(mesh.vertices, dtype=np.float64)
     F = np.array(mesh.faces, dtype=np.int64)
     H = np.full(len(V), float(target_mm))
     return _fix_slivers(V, F, H, _surface(reference), None, min_angle=min_angle, tol_mm=tol_mm,
                         cos_fold=math.cos(math.radians(flip_deg)), cos_turn=math.cos(math.radians(turn_deg)),
-                        rounds=rounds)
+                        rounds=rounds, only=only)

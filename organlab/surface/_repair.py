@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import OrganlabError
-from ._deviation import _SURFACES, _Surface, _surface, surface_deviation
+from ._deviation import _SURFACES, _deviation_figures, _distances, _Surface, _surface
 from ._folds import fold_edges
 from ._guard import keep_on_data
 from ._mesh import Mesh
@@ -597,12 +597,13 @@ def finish_surface(
             out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
             steps.append(rec)
     raw, final = mesh_quality(mesh), mesh_quality(out)
-    deviation = surface_deviation(out, repaired, voxel_size=float(voxel_size))
+    d_out, d_in = _distances(out, repaired, _surface(repaired))  # surface_deviation's, kept for the last step
+    deviation = _deviation_figures(d_out, d_in, float(voxel_size))
     if repair and remesh is not None and deviation["max_voxels"] >= 1.0 and not final["boundary_edges"]:
         # issue 21's promise (1 voxel at most): the raw points the finishing lost put back, see ._guard
         out, rec, deviation = keep_on_data(out, repaired, voxel_size=float(voxel_size), min_angle=min_angle,
                                            target_mm=min(float(remesh), MIN_EDGE_VOXELS * float(voxel_size)),
-                                           deviation=deviation)
+                                           deviation=deviation, distances=(d_out[:len(out.vertices)], d_in))
         steps.append(rec)
         final = mesh_quality(out)
     _SURFACES.clear()  # the closest-point trees (0.25 mm: ~100 MB for the raw surface) are not kept past the call
