@@ -428,7 +428,7 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *
 #: After each fit of the angles, every view's angle is scanned alone over +-this (degrees), the others held, for a
 #: lower cost of the same objective (data and prior); when one is found the fit restarts from there.  A fit from the
 #: commanded angles can stop with a view in a local minimum (``driftc_br11`` view 9, 0.57 degrees off its true
-#: angle, its own silhouettes' minimum 0.13 off: found by this scan, the cost 168.4 -> 167.1; docs/trust.md).
+#: angle, its own silhouettes' minimum 0.13 off: found by this scan, the cost 180.9 -> 178.6; docs/trust.md).
 POLISH_DEG = 1.0
 #: ... in steps of this (degrees; the refit then finds the minimum); 0.7 s CPU per fit at 640 x 480.
 POLISH_STEP_DEG = 0.1
