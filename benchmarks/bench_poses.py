@@ -13,7 +13,8 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
 * ``drift_br11`` / ``ok_br11``: another drift (seed 35) on ``aaa-11+branch`` (``aaa-11`` with two renal-artery-like
   stumps near its top, :class:`organlab.synthetic.BranchedAAA`: its outline shows its angles, its hull is near its
   volume), and the same render with the true angles; ``driftb_br11``: another render and drift (seed 45), no
-  default chosen on it;
+  default chosen on it; ``driftc_br11``: a third (seeds 61 / 65), rendered after the angles' prior was chosen;
+  ``driftd_br11``: a fourth (seeds 71 / 75), rendered after the view-by-view scan was added;
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
 * ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
@@ -75,6 +76,10 @@ def scenes(n=36, size=(640, 480)):
         "drift_br11": dict(base, seed=31, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 35)),
         "driftb_br11": dict(base, seed=41, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 45)),
         "ok_br11": dict(base, seed=31, specimen="aaa-11+branch"),
+        # a third render and drift, rendered after the trend + jitter prior was chosen (nothing chosen on it)
+        "driftc_br11": dict(base, seed=61, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 65)),
+        # and a fourth, rendered after the view-by-view scan (_refine._polish) was added on seeing driftc_br11
+        "driftd_br11": dict(base, seed=71, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 75)),
     }
 
 

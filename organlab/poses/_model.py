@@ -16,8 +16,8 @@ Posed model (views whose poses were given, e.g. published cameras): each view
 is turned about the axis of the ring its camera centres lie on by ``d_i``.
 
 Priors (residuals in units of their standard deviation): ``d_i`` near 0
-(:data:`SIGMA_ANGLE_DEG`), their second differences near 0 (smooth drift,
-:data:`SIGMA_SMOOTH_DEG`), the shared pose near the board calibration's
+(:data:`SIGMA_ANGLE_DEG`), a smooth trend (:data:`SIGMA_TREND_DEG`) plus each
+stop's own error (:data:`SIGMA_JITTER_DEG`, :func:`trend_jitter_root`), the shared pose near the board calibration's
 (:data:`SIGMA_ROTATION_DEG`, :data:`SIGMA_TRANSLATION_MM`): the last also pins
 what silhouettes cannot see (the camera's move along the table axis and toward
 it: both only move or scale the model).
@@ -25,7 +25,8 @@ it: both only move or scale the model).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -36,10 +37,19 @@ from ._tangents import MAX_HALF_ANGLE_DEG, pair_angles
 #: a drifting table's angles back toward the commanded ones, by a turn common to every view but the first
 #: (3 degrees: 0.2-0.34 degrees on the drifting ``dented`` table at 640 x 480, docs/trust.md).
 SIGMA_ANGLE_DEG = 30.0
-#: Second differences of the angle corrections: a table drifts smoothly, each stop with its own error of a
-#: few tenths of a degree (0.3 degrees of jitter give second differences of sd 0.7; 0.1 degrees, as before
-#: the sub-pixel outlines, smoothed the stops' own errors away: 0.29 / 0.73 degrees against 0.17 / 0.54).
-SIGMA_SMOOTH_DEG = 0.5
+#: The angle corrections are a trend (a table losing steps drifts smoothly over the turn) plus each stop's own
+#: positioning error, independent from stop to stop.  The trend's second differences have this sd (a slope that
+#: changes by 0.05 degrees per stop: far more curved than the linear drift of lost steps) ...
+SIGMA_TREND_DEG = 0.05
+#: ... each stop's own error this sd (the rigs of issue 20: 0.3 degrees of jitter per stop).  Until 2026-12-03 the
+#: second differences of the corrections themselves had sd 0.5 (one prior for both): a stop's own error then
+#: costs 6 second differences' worth and pulls its neighbours along, so a real jitter step was smoothed away
+#: (``driftb_br11`` view 27, 0.53 degrees off; docs/trust.md).
+SIGMA_JITTER_DEG = 0.3
+#: The angles are first fitted with the stops' own errors held to this sd (the trend alone, nearly), then freed
+#: to :data:`SIGMA_JITTER_DEG` from there: freed at once from the commanded angles, views whose outlines change
+#: fastest with their angle (15, 33 of ``drift_br11``) stop in local minima 0.8 degrees off.
+SIGMA_JITTER_START_DEG = 0.05
 #: The capture's angle audit (measured from the board at every stop): its error on the simulated rig is
 #: below 0.01 deg at 640 x 480, 0.05 deg at 320 x 240 (docs/capture.md); the views are taken at the same stops
 #: in a later pass, so a little more.
@@ -105,6 +115,8 @@ class Model:
     angles_free: bool = True
     #: measured angle corrections (the capture's angle audit, degrees; NaN: not audited), or None
     audit_deg: np.ndarray | None = None
+    #: sd of each stop's own angle error, degrees (None: :data:`SIGMA_JITTER_DEG`)
+    jitter_deg: float | None = None
 
     @property
     def n_shared(self):
@@ -175,9 +187,8 @@ class Model:
         m, sd = self.angle_prior()
         out = [(d[1:] - m[1:]) / (sd[1:] if self.angles_free else 1e-4)]
         if self.kind == "turntable" and self.n >= 3:
-            e = d - m  # what the audit did not measure drifts smoothly
-            dd = e[2:] - 2 * e[1:-1] + e[:-2]
-            out.append(dd / SIGMA_SMOOTH_DEG)
+            e = d - m  # what the audit did not measure: a trend plus each stop's own error
+            out.append(trend_jitter_root(self.n, SIGMA_TREND_DEG, self.jitter_deg or SIGMA_JITTER_DEG) @ e)
         if self.n_shared:
             out.append(np.rad2deg(w) / np.array([SIGMA_PITCH_DEG, SIGMA_ROTATION_DEG, SIGMA_ROTATION_DEG]))
             out.append(tau / SIGMA_TRANSLATION_MM)
@@ -185,6 +196,36 @@ class Model:
             out.append(slip[:2] / SIGMA_SLIP_MM)
             out.append(slip[2:] / SIGMA_SLIP_DEG)
         return np.concatenate(out)
+
+
+@functools.lru_cache(maxsize=16)
+def trend_jitter_root(n: int, trend_deg: float, jitter_deg: float) -> np.ndarray:
+    """The prior of ``n`` angle corrections that are a trend plus each stop's own error, as residuals.
+
+    ``e = s + j``: ``s`` a trend whose second differences have sd ``trend_deg``, ``j`` independent errors of sd
+    ``jitter_deg``.  Integrating ``s`` out, ``e`` has the precision ``P = q (I - (I + Q_s / q)^-1)`` (``q =
+    jitter_deg^-2``, ``Q_s = D2' D2 / trend_deg^2``); a linear trend costs nothing.
+
+    Returns
+    -------
+    S : (n, n) float64
+        ``|S e|^2 = e' P e`` (``S`` = ``sqrt(Lambda) V'`` of ``P``'s eigendecomposition).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> S = trend_jitter_root(36, 0.05, 0.3)
+    >>> float(np.sum((S @ np.linspace(0.0, 3.0, 36)) ** 2)) < 1e-9    # a linear drift is free
+    True
+    >>> e = np.zeros(36); e[10] = 0.3                                   # one stop 1 sd off (the trend takes a little)
+    >>> round(float(np.sum((S @ e) ** 2)), 2)
+    0.85
+    """
+    D = np.diff(np.eye(n), 2, axis=0)
+    q = 1.0 / jitter_deg**2
+    P = q * (np.eye(n) - np.linalg.inv(np.eye(n) + D.T @ D / (trend_deg**2 * q)))
+    lam, V = np.linalg.eigh(0.5 * (P + P.T))
+    return np.sqrt(np.clip(lam, 0.0, None))[:, None] * V.T
 
 
 class Problem:
@@ -246,6 +287,22 @@ class Problem:
         kp = self.keep if sel is None else self.keep[sel]
         return (psi[:, :2] - psi[:, 2:]) * sc[:, None] * kp
 
+    def view_pair_residuals(self, x, v, geometry):
+        """``pair_residuals(x, by_view[v])`` when only view ``v``'s pose differs from the one ``geometry``
+        (:meth:`_geometry` of other parameters) was computed at: only that view's rays are turned."""
+        rays_w, C, cen_w = geometry
+        R, t = self.model.poses(x)
+        keep = rays_w[v].copy(), C[v].copy(), cen_w[v].copy()
+        rays_w[v] = self.rays_cam[v] @ R[v]
+        C[v] = -R[v].T @ t[v]
+        cen_w[v] = self.centroid_cam[v] @ R[v]
+        try:
+            sel = self.by_view[v]
+            psi, _, _ = pair_angles(rays_w, C, cen_w, self.I[sel], self.J[sel])
+            return (psi[:, :2] - psi[:, 2:]) * self.scale[sel][:, None] * self.keep[sel]
+        finally:
+            rays_w[v], C[v], cen_w[v] = keep
+
     def residuals(self, x, weights=None):
         r = self.pair_residuals(x)
         if weights is not None:
@@ -277,8 +334,20 @@ class Problem:
             J[2 * P :, k] = (m.prior(xk) - p0) / h
         return J
 
-    def fit(self, x0, *, weights=None, max_iter=30):
-        """Robust Levenberg-Marquardt (soft-L1, :data:`F_SCALE`), deterministic; returns ``(x, info)``."""
+    def fit(self, x0, *, weights=None, max_iter=30, trend_first=False):
+        """Robust Levenberg-Marquardt (soft-L1, :data:`F_SCALE`), deterministic; returns ``(x, info)``.
+
+        ``trend_first``: the angles are first fitted with the stops' own errors held to
+        :data:`SIGMA_JITTER_START_DEG`, then from there with the model's prior (the fit from the commanded angles).
+        """
+        m = self.model
+        if trend_first and m.kind == "turntable" and m.angles_free and m.n >= 3:
+            self.model = replace(m, jitter_deg=SIGMA_JITTER_START_DEG)
+            try:
+                x0, _ = robust_lm(lambda x: self.residuals(x, weights), lambda x: self.jacobian(x, weights), x0,
+                                  max_iter=max_iter)
+            finally:
+                self.model = m
         return robust_lm(lambda x: self.residuals(x, weights), lambda x: self.jacobian(x, weights), x0, max_iter=max_iter)
 
     def view_rms(self, x, views=None, partners=None):
