@@ -376,7 +376,7 @@ class SilhouetteModel:
             raise ValueError(f"joint: got {len(sils)} silhouettes and {len(cameras)} cameras for {len(self)} views")
         kw = {} if iterations is None else {"iterations": int(iterations)}
         masks, summary = joint_masks([s.mask for s in sils], self.differences, list(cameras), box,
-                                     regions=not self.keyed, **kw)
+                                     keyed=self.keyed, **kw)
         out = []
         for i, (s, m, row) in enumerate(zip(sils, masks, summary["views"])):
             change = {"added": row["added"], "removed": row["removed"]}
