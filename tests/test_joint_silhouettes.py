@@ -110,12 +110,13 @@ def test_engine_setting_and_report(tmp_path):
 
     with pytest.raises(SettingsError, match="joint_silhouettes"):
         Settings(joint_silhouettes="yes").validate()
-    root = copy_sample(tmp_path / "s", calibration=True, views=3)  # 12 views: 'auto' runs the step
+    root = copy_sample(tmp_path / "s", calibration=True, views=3)  # 12 views of background subtraction
     eng = Engine(root)
-    assert Settings().joint_silhouettes == "off"  # the default (docs/silhouettes.md says why)
-    rec = eng.run(Settings(voxel_size=4.0, finish=False, measure=False, joint_silhouettes="auto"))
+    assert Settings().joint_silhouettes == "auto"  # the default: keyed sessions only (docs/silhouettes.md says why)
+    assert not eng.silhouette_model.joint_applies()  # 'auto' leaves a subtraction session alone
+    rec = eng.run(Settings(voxel_size=4.0, finish=False, measure=False, joint_silhouettes="on"))
     j = rec.report["joint_silhouettes"]
-    assert j["mode"] == "auto" and j["ran"] and j["iterations"] >= 1
+    assert j["mode"] == "on" and j["ran"] and j["iterations"] >= 1
     rows = [v["silhouette_joint"] for v in rec.report["views"]]
     assert j["added_px"] == sum(r["added"] for r in rows) and j["removed_px"] == sum(r["removed"] for r in rows)
     # the sample's silhouettes are right: measured 59 px added in all (58 in one view: a region between the

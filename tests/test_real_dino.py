@@ -187,7 +187,8 @@ def backdrop(dino, tmp_path_factory):
     eng = Engine(folder)
     runs = {}
     for mode in ("off", "auto"):
-        rec = eng.run(Settings(voxel_size=1.0, measure=False, joint_silhouettes=mode))
+        # 'auto' is the default: a backdrop session of 15 views runs the joint step
+        rec = eng.run(Settings(voxel_size=1.0, measure=False, **({} if mode == "auto" else {"joint_silhouettes": mode})))
         row = {"rec": rec, "width": [v["agreement"]["disagreement_width_px"] for v in rec.report["views"]]}
         for surface, mesh in (("raw", rec.raw_mesh), ("finished", rec.mesh)):
             renders = [model_mask(mesh, c) for c in cams]
@@ -211,14 +212,20 @@ def test_dino_backdrop_joint_silhouettes_help(backdrop):
     j = on["rec"].report["joint_silhouettes"]
     assert j["ran"] and not off["rec"].report["joint_silhouettes"]["ran"]
     assert j["removed_px"] < 0.01 * j["added_px"] + 500
-    # measured 1 mm, raw surface: like with like 0.9796 -> 0.9805, plain 0.9728 -> 0.9760 (finished: 0.9790 -> 0.9805,
-    # 0.9722 -> 0.9755); the region rule on keyed views gave 0.980 -> 0.972 like with like.  The hull of the authors' own
+    # the stand seen through the gap between leg and body in dinoSR0001: no other view requires it, so it stays out
+    # (measured width 0.028 px; the edge rule took 1 491 px of it: 0.370 px, flagged)
+    from organlab.agreement import AGREEMENT_LIMIT
+
+    assert on["width"][0] < AGREEMENT_LIMIT
+    # measured 1 mm, raw surface: like with like 0.9796 -> 0.9814, plain 0.9728 -> 0.9770 (finished: 0.9790 -> 0.9809,
+    # 0.9722 -> 0.9765); the region rule on keyed views gave 0.980 -> 0.972 like with like.  The hull of the authors' own
     # threshold-and-closing masks scores 0.9797 like with like at 1 mm (docs/silhouettes.md): the 1 mm bound
     assert on["raw"][0].mean() >= off["raw"][0].mean() - 0.001
     assert on["raw"][1].mean() >= off["raw"][1].mean() + 0.002
     assert min(run[s][0].mean() for run in (off, on) for s in ("raw", "finished")) > 0.978
-    # issue 21's plain target 0.975: measured 0.9760 raw, 0.9755 finished with the joint step (0.9728, 0.9722 without)
-    assert on["finished"][1].mean() > 0.974 and on["raw"][1].mean() > 0.975
+    # issue 21's plain target 0.975, with the default (joint 'auto' on a backdrop session): measured 0.9770 raw, 0.9765
+    # finished (0.9728, 0.9722 without the step; 0.9760 / 0.9755 with the edge rule instead of the required rule)
+    assert on["finished"][1].mean() >= 0.975 and on["raw"][1].mean() >= 0.975
 
 
 @needs_data
@@ -244,11 +251,15 @@ def test_dino_like_with_like_bound_at_1mm(dino, backdrop):
 @pytest.mark.slow
 def test_dino_backdrop_chin_comes_back_from_its_rim(backdrop):
     """Views 1-3 (dinoSR0002-0004) see the shadowed notch under the chin as dark as the backdrop and carve it from
-    views 7-10 (dinoSR0009-0012), which see it lit: the joint step's edge rule brings the carving views' outline back."""
+    views 7-10 (dinoSR0009-0012), which see it lit: the joint step's required rule gives the carving views back the
+    voxels the lit views need (where the notch is not the backdrop's colour), and no chin view is flagged."""
+    from organlab.agreement import AGREEMENT_LIMIT
+
     off, on = backdrop["off"], backdrop["auto"]
-    # measured widest disagreement of views 7-10 at 1 mm: 1.429 px -> 0.184 px (2 mm: 1.475 -> 0.290); still above the
-    # 0.05 px flag limit (docs/silhouettes.md: the notch's pixels fail the edge rule's contrast test)
-    assert max(on["width"][7:11]) < 0.25 and max(on["width"][7:11]) < 0.2 * max(off["width"][7:11])
+    # measured widest disagreement of views 7-10 at 1 mm: 1.429 px without the step -> 0.016 px with it (the edge
+    # rule alone, before the required rule: 0.184); the flag limit is 0.05 px
+    assert max(off["width"][7:11]) > 1.0
+    assert max(on["width"][7:11]) < 0.5 * AGREEMENT_LIMIT
 
 
 @needs_data
@@ -286,9 +297,10 @@ def test_dino_authors_masks_hole_the_shadowed_creases(dino, backdrop):
         hole = ndimage.binary_fill_holes(plain[i]) & ~plain[i]
         ours = ndimage.binary_fill_holes(rec.silhouettes[i].mask) & ~rec.silhouettes[i].mask
         grey = imgs[i].astype(float) @ [0.299, 0.587, 0.114] / 255
-        # measured holes 2 669 / 3 076 / 2 925 / 1 508 px (ours 9 / 8 / 13 / 9); their grey median 0.11-0.12, the
-        # image border's 0.0: dark specimen, not backdrop
-        assert hole.sum() > 1000 and ours.sum() < 50, (i, hole.sum(), ours.sum())
+        # measured holes 2 669 / 3 076 / 2 925 / 1 508 px (ours 67 / 8 / 13 / 9 with the joint step's required rule,
+        # whose additions close a few small holes; 9 / 8 / 13 / 9 with the edge rule); their grey median 0.11-0.12,
+        # the image border's 0.0: dark specimen, not backdrop
+        assert hole.sum() > 1000 and ours.sum() < 100, (i, hole.sum(), ours.sum())
         assert 0.06 < np.median(grey[hole]) < 0.19 and np.median(grey[:, :5]) < 0.02
     filled = [ndimage.binary_fill_holes(m) if i in creases else m for i, m in enumerate(masks)]
     filled_plain = [ndimage.binary_fill_holes(m) if i in creases else m for i, m in enumerate(plain)]
