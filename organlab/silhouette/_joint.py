@@ -210,18 +210,44 @@ def required_by_others(grid: VoxelGrid, counts: np.ndarray, who: np.ndarray, mas
     for j, (m, e, cam) in enumerate(zip(masks, explained, cameras)):
         if e is None:
             continue
-        uv = cam.project(pts)
-        ok = np.isfinite(uv).all(axis=1) & (sole != j)
+        miss = m & ~e  # e: the exact hull's projection, widened by EXPLAIN_PX
+        if not miss.any():
+            continue
+        todo = np.flatnonzero((votes < support) & (sole != j))  # a voxel with its votes is not projected again
+        if not len(todo):
+            break
+        uv = _project(cam, pts[todo])
+        ok = np.isfinite(uv).all(axis=1)
         u = np.floor(uv[ok, 0] + 0.5).astype(np.int64)
         v = np.floor(uv[ok, 1] + 0.5).astype(np.int64)
         h, w = m.shape
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         hit = np.zeros(len(u), bool)
-        hit[inside] = m[v[inside], u[inside]] & ~e[v[inside], u[inside]]  # e: explained, widened by EXPLAIN_PX
-        votes[np.flatnonzero(ok)[hit]] += 1
+        hit[inside] = miss[v[inside], u[inside]]
+        votes[todo[np.flatnonzero(ok)[hit]]] += 1
     keep = votes >= support
     out[tuple(idx[keep].T)] = sole[keep]
     return out
+
+
+def _project(cam, pts):
+    """``cam.project(pts)``; one matrix product for a camera without distortion (the same pixels to ~1e-9 px)."""
+    if np.any(cam.dist):
+        return cam.project(pts)
+    M = cam.K @ cam.R
+    b = cam.K @ np.asarray(cam.t, float).ravel()
+    uvw = pts @ M.T + b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(uvw[:, 2] > 0, uvw[:, 2], np.nan)
+        return uvw[:, :2] / w[:, None]
+
+
+def _raster_of(occ, grid):
+    """``MeshRaster`` of the boundary faces of ``occ``, found in its bounding box only (a few voxels of a large grid)."""
+    idx = np.argwhere(occ)
+    a, b = idx.min(axis=0), idx.max(axis=0) + 1
+    sub = VoxelGrid(tuple(np.asarray(grid.origin, float) + a * grid.voxel_size), grid.voxel_size, tuple(b - a))
+    return MeshRaster(*voxel_boundary_quads(occ[a[0]:b[0], a[1]:b[1], a[2]:b[2]], sub))
 
 
 def _stats(d, ring):
@@ -428,7 +454,7 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
             slack = int(math.ceil(2.5 * voxel / fp)) if math.isfinite(fp) and fp > 0 else 3
             prior = raster.mask(cam, np.shape(differences[i])[:2])
             mine = need_who == i
-            need = MeshRaster(*voxel_boundary_quads(mine, grid)).mask(cam, shapes[i]) if mine.any() else None
+            need = _raster_of(mine, grid).mask(cam, shapes[i]) if mine.any() else None
             m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack, keyed=keyed,
                                      need=need)
             changed += int(np.count_nonzero(m != cur[i]))
