@@ -203,10 +203,11 @@ def _parser():
     r.add_argument("--refine-poses", choices=["auto", "on", "off"], default="auto",
                    help="correct the poses from the silhouettes (a bumped camera, a table that lost steps, a specimen that "
                         "slid), kept only when views left out of the fit agree better; auto: when views disagree (default)")
-    r.add_argument("--joint-silhouettes", choices=["auto", "on", "off"], default="off",
+    r.add_argument("--joint-silhouettes", choices=["auto", "on", "off"], default="auto",
                    help="segment every view again with the hull of all the views as a prior: adds what the other views "
                         "require and the colour does not deny (dark parts, shaded rims), drops what no view explains; "
-                        "auto: for sessions with >= 8 views it segments itself; default off (the sample: unchanged, +3 s)")
+                        "auto (default): for backdrop sessions with >= 8 views; on: also background subtraction (the sample: "
+                        "unchanged, +3 s)")
     r.add_argument("--raw-surface", action="store_true", help="keep the marching-cubes surface (no repair/remeshing)")
     r.add_argument("--allow-outside-paths", action="store_true",
                    help="accept image paths in session.json that lead out of the session folder (.., absolute, symlinks)")

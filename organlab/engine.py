@@ -60,7 +60,7 @@ __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_ME
 
 METHODS = ("hull", "coloring", "space_carving", "photo")
 HULL_METHODS = ("subvoxel", "thesis")
-#: Settings.joint_silhouettes: "auto" runs the joint step when a session has >= 8 views it segments itself.
+#: Settings.joint_silhouettes: "auto" (the default) runs the joint step for a keyed (backdrop) session with >= 8 views.
 JOINT_MODES = ("auto", "on", "off")
 
 
@@ -142,11 +142,11 @@ class Settings:
         Segment every view again with the hull of all the views as a prior
         (:meth:`organlab.silhouette.SilhouetteModel.joint`: adds what the
         other views require and the colour does not deny, drops what no
-        view explains); 'auto': when the session has >= 8 views whose
-        silhouettes it finds itself (subtraction or keying; keyed views
-        get its edge rule and removal, not its region rule).
-        Default 'off': on the sample it changes 4 px and costs about 3 s CPU
-        at 1 mm; see docs/silhouettes.md for what it recovers elsewhere.
+        view explains); 'auto' (default): for a session keyed against a
+        backdrop with >= 8 views (keyed views get its required rule and
+        removal only); 'on' also for background subtraction (on the sample
+        it changes 4 px and costs about 3 s CPU at 1 mm); see
+        docs/silhouettes.md.
 
     Examples
     --------
@@ -169,7 +169,7 @@ class Settings:
     measure: bool | None = None
     roi: tuple | None = None
     refine_poses: str = "auto"  # 'auto' | 'on' | 'off' (organlab.poses.refine_poses)
-    joint_silhouettes: str = "off"  # 'auto' | 'on' | 'off' (SilhouetteModel.joint: every view's hull as a prior)
+    joint_silhouettes: str = "auto"  # 'auto' | 'on' | 'off' (SilhouetteModel.joint: every view's hull as a prior)
 
     def replace(self, **changes: Any) -> Settings:
         """A copy with some fields changed (validated)."""

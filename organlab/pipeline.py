@@ -68,7 +68,7 @@ def reconstruct(
     finish: bool = True,
     measure: bool | None = None,
     refine_poses: str = "auto",
-    joint_silhouettes: str = "off",
+    joint_silhouettes: str = "auto",
 ) -> Reconstruction:
     """Reconstruct a session: calibration (when needed), silhouettes, visual hull, (colouring), surface.
 

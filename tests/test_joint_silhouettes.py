@@ -53,8 +53,8 @@ def test_a_correct_silhouette_is_not_grown(scene, backdrop):
 
 @pytest.mark.parametrize("backdrop", KEYINGS, ids=["subtraction", "keyed"])
 def test_a_part_one_view_lost_comes_back_and_a_blob_no_view_explains_goes(scene, backdrop):
-    """Keyed views (Delta E against the backdrop) get the edge rule, not the region rule: the notch, 6 px deep,
-    comes back from its rim in (4 px per round)."""
+    """Keyed views (Delta E against the backdrop) get neither the edge rule nor the region rule: the notch comes back
+    by the required rule (the voxels only view 3 carves, on pixels other views cannot explain without them)."""
     cams, images, empty, cover = scene
     model = SilhouetteModel(images, [empty], backdrop=backdrop)
     true = [c >= 0.5 for c in cover]
@@ -71,11 +71,13 @@ def test_a_part_one_view_lost_comes_back_and_a_blob_no_view_explains_goes(scene,
     masks[5] |= blob
     out, summary = model.joint(_sils(model, masks), cams, BOX)
     back = np.count_nonzero(out[3].mask & notch) / np.count_nonzero(notch)
-    # measured: the whole notch (1.00) comes back, no pixel outside the true mask is added; the blob goes
-    assert back >= 0.9, back
+    # measured: the whole notch (1.00) comes back by subtraction (edge and region rules), 0.78 keyed (the required
+    # rule alone: the notch's outermost pixels graze the outline, where the other views' rays are explained within the
+    # prior's 1.5 px voxels, so nothing requires them); no pixel outside the true mask is added; the blob goes
+    assert back >= (0.7 if backdrop else 0.9), back
     assert not (out[3].mask & ~true[3]).any()
     assert not (out[5].mask & blob).any()
-    assert summary["views"][3]["added"] >= 0.9 * np.count_nonzero(notch)
+    assert summary["views"][3]["added"] >= (0.7 if backdrop else 0.9) * np.count_nonzero(notch)
     assert summary["views"][5]["removed"] == np.count_nonzero(blob)
     # the views that were right are unchanged
     for i in (0, 1, 2, 4, 6, 7, 8, 9, 10, 11):
@@ -108,12 +110,13 @@ def test_engine_setting_and_report(tmp_path):
 
     with pytest.raises(SettingsError, match="joint_silhouettes"):
         Settings(joint_silhouettes="yes").validate()
-    root = copy_sample(tmp_path / "s", calibration=True, views=3)  # 12 views: 'auto' runs the step
+    root = copy_sample(tmp_path / "s", calibration=True, views=3)  # 12 views of background subtraction
     eng = Engine(root)
-    assert Settings().joint_silhouettes == "off"  # the default (docs/silhouettes.md says why)
-    rec = eng.run(Settings(voxel_size=4.0, finish=False, measure=False, joint_silhouettes="auto"))
+    assert Settings().joint_silhouettes == "auto"  # the default: keyed sessions only (docs/silhouettes.md says why)
+    assert not eng.silhouette_model.joint_applies()  # 'auto' leaves a subtraction session alone
+    rec = eng.run(Settings(voxel_size=4.0, finish=False, measure=False, joint_silhouettes="on"))
     j = rec.report["joint_silhouettes"]
-    assert j["mode"] == "auto" and j["ran"] and j["iterations"] >= 1
+    assert j["mode"] == "on" and j["ran"] and j["iterations"] >= 1
     rows = [v["silhouette_joint"] for v in rec.report["views"]]
     assert j["added_px"] == sum(r["added"] for r in rows) and j["removed_px"] == sum(r["removed"] for r in rows)
     # the sample's silhouettes are right: measured 59 px added in all (58 in one view: a region between the

@@ -187,7 +187,8 @@ def backdrop(dino, tmp_path_factory):
     eng = Engine(folder)
     runs = {}
     for mode in ("off", "auto"):
-        rec = eng.run(Settings(voxel_size=1.0, measure=False, joint_silhouettes=mode))
+        # 'auto' is the default: a backdrop session of 15 views runs the joint step
+        rec = eng.run(Settings(voxel_size=1.0, measure=False, **({} if mode == "auto" else {"joint_silhouettes": mode})))
         row = {"rec": rec, "width": [v["agreement"]["disagreement_width_px"] for v in rec.report["views"]]}
         for surface, mesh in (("raw", rec.raw_mesh), ("finished", rec.mesh)):
             renders = [model_mask(mesh, c) for c in cams]
@@ -197,7 +198,8 @@ def backdrop(dino, tmp_path_factory):
         runs[mode] = row
         print(f"{mode}: like with like {row['raw'][0].mean():.4f} raw / {row['finished'][0].mean():.4f} finished, plain "
               f"{row['raw'][1].mean():.4f} / {row['finished'][1].mean():.4f}, widest disagreement {max(row['width']):.3f} px "
-              f"(views {np.argsort(row['width'])[::-1][:3].tolist()}), joint {rec.report['joint_silhouettes']}")
+              f"(views {np.argsort(row['width'])[::-1][:3].tolist()}; over 0.05 px: "
+              f"{[i for i, w in enumerate(row['width']) if w > 0.05]}), joint {rec.report['joint_silhouettes']}")
     return runs
 
 
@@ -211,14 +213,20 @@ def test_dino_backdrop_joint_silhouettes_help(backdrop):
     j = on["rec"].report["joint_silhouettes"]
     assert j["ran"] and not off["rec"].report["joint_silhouettes"]["ran"]
     assert j["removed_px"] < 0.01 * j["added_px"] + 500
-    # measured 1 mm, raw surface: like with like 0.9796 -> 0.9805, plain 0.9728 -> 0.9760 (finished: 0.9790 -> 0.9805,
-    # 0.9722 -> 0.9755); the region rule on keyed views gave 0.980 -> 0.972 like with like.  The hull of the authors' own
+    # the stand seen through the gap between leg and body in dinoSR0001: no other view requires it, so it stays out
+    # (measured width 0.028 px; the edge rule took 1 491 px of it: 0.370 px, flagged)
+    from organlab.agreement import AGREEMENT_LIMIT
+
+    assert on["width"][0] < AGREEMENT_LIMIT
+    # measured 1 mm, raw surface: like with like 0.9796 -> 0.9814, plain 0.9728 -> 0.9770 (finished: 0.9790 -> 0.9809,
+    # 0.9722 -> 0.9765); the region rule on keyed views gave 0.980 -> 0.972 like with like.  The hull of the authors' own
     # threshold-and-closing masks scores 0.9797 like with like at 1 mm (docs/silhouettes.md): the 1 mm bound
     assert on["raw"][0].mean() >= off["raw"][0].mean() - 0.001
     assert on["raw"][1].mean() >= off["raw"][1].mean() + 0.002
     assert min(run[s][0].mean() for run in (off, on) for s in ("raw", "finished")) > 0.978
-    # issue 21's plain target 0.975: measured 0.9760 raw, 0.9755 finished with the joint step (0.9728, 0.9722 without)
-    assert on["finished"][1].mean() > 0.974 and on["raw"][1].mean() > 0.975
+    # issue 21's plain target 0.975, with the default (joint 'auto' on a backdrop session): measured 0.9770 raw, 0.9765
+    # finished (0.9728, 0.9722 without the step; 0.9760 / 0.9755 with the edge rule instead of the required rule)
+    assert on["finished"][1].mean() >= 0.975 and on["raw"][1].mean() >= 0.975
 
 
 @needs_data
@@ -244,11 +252,15 @@ def test_dino_like_with_like_bound_at_1mm(dino, backdrop):
 @pytest.mark.slow
 def test_dino_backdrop_chin_comes_back_from_its_rim(backdrop):
     """Views 1-3 (dinoSR0002-0004) see the shadowed notch under the chin as dark as the backdrop and carve it from
-    views 7-10 (dinoSR0009-0012), which see it lit: the joint step's edge rule brings the carving views' outline back."""
+    views 7-10 (dinoSR0009-0012), which see it lit: the joint step's required rule gives the carving views back the
+    voxels the lit views need (where the notch is not the backdrop's colour), and no chin view is flagged."""
+    from organlab.agreement import AGREEMENT_LIMIT
+
     off, on = backdrop["off"], backdrop["auto"]
-    # measured widest disagreement of views 7-10 at 1 mm: 1.429 px -> 0.184 px (2 mm: 1.475 -> 0.290); still above the
-    # 0.05 px flag limit (docs/silhouettes.md: the notch's pixels fail the edge rule's contrast test)
-    assert max(on["width"][7:11]) < 0.25 and max(on["width"][7:11]) < 0.2 * max(off["width"][7:11])
+    # measured widest disagreement of views 7-10 at 1 mm: 1.429 px without the step -> 0.016 px with it (the edge
+    # rule alone, before the required rule: 0.184); the flag limit is 0.05 px
+    assert max(off["width"][7:11]) > 1.0
+    assert max(on["width"][7:11]) < 0.5 * AGREEMENT_LIMIT
 
 
 @needs_data
@@ -274,7 +286,7 @@ def test_dino_authors_masks_hole_the_shadowed_creases(dino, backdrop):
     grey 0.19 and 10 px closing leave holes in the shadowed creases on the dino's body in dinoSR0002-0005 (between the
     spines, the neck fold: solid plaster at grey about 0.11, against the backdrop's 0); their hull carves those rays
     and so reproduces its own holes.  Our keyed silhouettes keep the creases; scored against the authors' masks with
-    those four views' holes filled, the default finished surface with the joint step meets 0.985 within 0.0002."""
+    those four views' holes filled, the default finished surface (joint step 'auto') meets 0.985."""
     from scipy import ndimage
 
     data, masks, cams = dino
@@ -286,9 +298,13 @@ def test_dino_authors_masks_hole_the_shadowed_creases(dino, backdrop):
         hole = ndimage.binary_fill_holes(plain[i]) & ~plain[i]
         ours = ndimage.binary_fill_holes(rec.silhouettes[i].mask) & ~rec.silhouettes[i].mask
         grey = imgs[i].astype(float) @ [0.299, 0.587, 0.114] / 255
-        # measured holes 2 669 / 3 076 / 2 925 / 1 508 px (ours 9 / 8 / 13 / 9); their grey median 0.11-0.12, the
-        # image border's 0.0: dark specimen, not backdrop
-        assert hole.sum() > 1000 and ours.sum() < 50, (i, hole.sum(), ours.sum())
+        # measured holes 2 669 / 3 076 / 2 925 / 1 508 px, every pixel of them inside our silhouettes; ours 67 / 371 /
+        # 801 / 0 px with the required rule (9 / 8 / 13 / 9 with the edge rule), none in theirs: pixels its additions
+        # enclose, darker (grey 0.04-0.06, Delta E 3.5-6) than the creases; their grey median 0.11-0.12, the image
+        # border's 0.0: dark specimen, not backdrop
+        mask = rec.silhouettes[i].mask
+        print(f"view {i}: holes theirs {hole.sum()} px ({(hole & mask).sum()} in ours), ours {ours.sum()} px")
+        assert hole.sum() > 1000 and (hole & mask).sum() > 0.99 * hole.sum() and not (ours & hole).any()
         assert 0.06 < np.median(grey[hole]) < 0.19 and np.median(grey[:, :5]) < 0.02
     filled = [ndimage.binary_fill_holes(m) if i in creases else m for i, m in enumerate(masks)]
     filled_plain = [ndimage.binary_fill_holes(m) if i in creases else m for i, m in enumerate(plain)]
@@ -298,8 +314,9 @@ def test_dino_authors_masks_hole_the_shadowed_creases(dino, backdrop):
     plain_iou = np.mean([_iou(r, m)[0] for r, m in zip(renders, filled_plain)])
     print(f"finished, joint auto, against the authors' masks with dinoSR0002-0005's holes filled: like with like "
           f"{like:.4f}, plain {plain_iou:.4f}")
-    # measured 0.9848 like with like (0.9805 against their holed masks), plain 0.9816 (0.9755); joint off 0.9829, 0.9782
-    assert like > 0.984 and like > backdrop["auto"]["finished"][0].mean() + 0.003
+    # measured 0.9853 like with like (0.9809 against their holed masks), plain 0.9825 (0.9765); with the edge rule
+    # instead of the required rule 0.9848, 0.9816; joint off 0.9829, 0.9782
+    assert like >= 0.985 and like > backdrop["auto"]["finished"][0].mean() + 0.003
     assert plain_iou > 0.980
 
 def test_write_middlebury_session(tmp_path):

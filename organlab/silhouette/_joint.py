@@ -11,32 +11,59 @@ segmented again with the model of the views together as a prior:
    :func:`organlab.raster.model_mask` fills them).  A part that one or two
    views miss (a dark notch, a shaded rim, a dark paint patch) stays in this
    hull, so it projects into the views that miss it;
-2. the *colour evidence*: each view's difference image (the distance to the
+2. the *required voxels*: the same carving counts, per voxel, the views that
+   carve it and, where one view alone carves it, which one.  The exact hull
+   (no view carves) is projected into every view; a silhouette pixel outside
+   it is *unexplained*.  A voxel that one view ``i`` alone carves and whose
+   centre falls on an unexplained pixel of another view is *required* of view
+   ``i`` (:func:`required_by_others`): that view sees the specimen there, and
+   only view ``i`` denies it (the dino's shadowed chin notch: views that see
+   it lit lose its rays to the one view that sees it as dark as the backdrop);
+3. the *colour evidence*: each view's difference image (the distance to the
    background model, grey levels, or Delta E to the backdrop) is compared
    with the background's own statistics, measured in a ring just outside the
-   prior's projection (median, MAD, 99.5th percentile);
-3. *edge growth* (sub-pixel rule): a pixel next to the silhouette and
+   prior's projection (mean, MAD, 99.5th percentile);
+4. *required pixels* (applied after rules 5 and 6, to what they left): the
+   projection of the voxels required of a view, widened by
+   ``NEED_BRIDGE_PX`` (the voxels project coarsely), where
+   its difference exceeds the ring's mean by ``NEED_SD`` deviations (not the
+   backdrop: a pixel that shows the backdrop contradicts the others, and
+   stays out) and in parts that touch the silhouette and hold a required
+   pixel, is added; on its new outline only pixels that show
+   ``EDGE_FRACTION`` of the contrast around (rule 5's sub-pixel test).  A pixel no
+   other view needs is never added by this rule, so a concavity that only
+   this view sees through (the stand seen through a gap) stays carved;
+5. *edge growth* (sub-pixel rule): a pixel next to the silhouette and
    inside the prior is added where it differs from the background beyond
    the ring's 99.5th percentile and by at least ``EDGE_FRACTION`` (0.6) of the contrast of
    the silhouette's pixels around it (an edge pixel covered by a fraction ``a``
    of the specimen shows ``a`` times that contrast: the rule adds the pixels
    the specimen covers by more than half, the ones a global threshold drops
    where the specimen's edge is shaded);
-4. *regions the others require*: a connected part of the prior's
+6. *regions*: a connected part of the prior's
    projection, eroded by its slack (the voxels' size and the bounding-box
    test's margin), that the silhouette misses is added whole when its mean
    difference exceeds the background ring's (by 4 standard errors, and half
    a standard deviation): dark, but not the background;
-5. *removal*: silhouette pixels beyond the prior's projection (widened by its
+7. *removal*: silhouette pixels beyond the prior's projection (widened by its
    slack) are dropped: nothing the other views see explains them (a cast
    shadow on the plate, a strip of the stand);
-6. repeat with the new silhouettes until no pixel changes (at most
+8. repeat with the new silhouettes until no pixel changes (at most
    ``ITERATIONS`` rounds).
 
+Keyed views (Delta E to one backdrop colour, no model of the background
+per pixel) get rules 4 and 7 only.  Against one colour, the shadowed parts
+of a dark specimen, a dark stand and the shadows beside it have the same
+Delta E (the dinoSparseRing photos: 2-10 for all three): a region (rule 6)
+has no colour evidence, and the edge rule's contrast, taken from the
+silhouette's pixels around, follows the pixels it added into the stand
+(1 491 px of it in dinoSR0001 through the gap between leg and body).
+
 Given masks are never changed (they are priors for the others).  A correct
-silhouette is not grown: beyond it the prior's projection is only its slack
-(rejected by region 4's erosion), and edge pixels the specimen covers by half
-or less fail rule 3.
+silhouette is not grown: every pixel of it is explained, so no voxel is
+required; beyond it the prior's projection is only its slack (rejected by
+rule 6's erosion), and edge pixels the specimen covers by half or less fail
+rule 5.
 """
 
 from __future__ import annotations
@@ -78,6 +105,16 @@ REGION_FRACTION = 0.1
 REMOVE_FRACTION = 0.1
 #: Least background deviation of the region rule (grey levels or Delta E: quantised, noiseless backdrops have MAD 0).
 SD_FLOOR = 1.0
+#: Required rule: least difference, in the background ring's deviations above its mean; other views whose
+#: unexplained pixels must vote for a voxel.
+NEED_SD = 3.0
+NEED_SUPPORT = 1
+#: Unexplained pixels lie beyond this distance (px) of the exact hull's projection: closer is the prior's voxels
+#: (about 1.5 px), not views that disagree.
+EXPLAIN_PX = 1
+#: Required rule: how far (px) the part added may reach beyond the required voxels' projection (to join it to
+#: the silhouette: the voxels' projection is coarse).
+NEED_BRIDGE_PX = 2
 #: Views needed for the joint step to mean anything ("auto").
 MIN_VIEWS = 8
 
@@ -110,25 +147,38 @@ def footprint_mm(cameras: Sequence[Camera], point) -> float:
     return float(np.mean([c.pixel_footprint(np.asarray(point, float)) for c in cameras]))
 
 
-def _carve_tolerant(masks, cameras, lo, hi, voxel):
+def _carve_tolerant(masks, cameras, lo, hi, voxel, *, sole=False):
+    """The tolerant hull; with ``sole``, also the carving counts and, per voxel carved by one view, which."""
     grid = VoxelGrid.from_roi(lo, hi, voxel)
     carver = ProgressiveCarver(grid, tolerance=TOLERANCE)
-    for m, c in zip(masks, cameras):
+    if not sole:
+        for m, c in zip(masks, cameras):
+            carver.add_view(m, c)
+        return grid, carver.occupancy
+    prev = np.zeros(grid.shape, np.uint16)
+    who = np.full(grid.shape, -1, np.int16)
+    for i, (m, c) in enumerate(zip(masks, cameras)):
         carver.add_view(m, c)
-    return grid, carver.occupancy
+        cnt = carver.carve_counts
+        who[(cnt == 1) & (prev == 0)] = i
+        prev = cnt
+    return grid, (prev, who)
 
 
-def prior_hull(masks: Sequence[np.ndarray], cameras: Sequence[Camera], box: tuple) -> tuple[VoxelGrid, np.ndarray]:
+def prior_hull(masks: Sequence[np.ndarray], cameras: Sequence[Camera], box: tuple, *,
+               sole: bool = False) -> tuple[VoxelGrid, np.ndarray]:
     """The tolerant hull (``TOLERANCE`` views may carve a voxel) of masks, on a grid of ~``VOXEL_PX`` px footprints.
 
     Coarse first (the box in ~48 voxels along its largest side) to find where
-    the hull lies, then fine in that part of the box.
+    the hull lies, then fine in that part of the box.  With ``sole``, the
+    second value is ``(counts, who)`` instead: the views carving each voxel
+    (up to ``TOLERANCE + 1``) and, where one view carves it, which one (else -1).
     """
     lo, hi = (np.asarray(v, float) for v in box)
     coarse = float((hi - lo).max()) / 48.0
     g, occ = _carve_tolerant(masks, cameras, lo, hi, coarse)
     if not occ.any():
-        return g, occ
+        return _carve_tolerant(masks, cameras, lo, hi, coarse, sole=True) if sole else (g, occ)
     idx = np.argwhere(occ)
     a, b = idx.min(axis=0) - 1, idx.max(axis=0) + 2
     lo2 = np.maximum(lo, lo + a * coarse)
@@ -136,7 +186,68 @@ def prior_hull(masks: Sequence[np.ndarray], cameras: Sequence[Camera], box: tupl
     fp = footprint_mm(cameras, 0.5 * (lo2 + hi2))
     voxel = VOXEL_PX * fp if math.isfinite(fp) else coarse / 4
     voxel = max(voxel, (float(np.prod(hi2 - lo2)) / MAX_VOXELS) ** (1.0 / 3.0))
-    return _carve_tolerant(masks, cameras, lo2, hi2, voxel)
+    return _carve_tolerant(masks, cameras, lo2, hi2, voxel, sole=sole)
+
+
+def required_by_others(grid: VoxelGrid, counts: np.ndarray, who: np.ndarray, masks: Sequence[np.ndarray],
+                       explained: Sequence[np.ndarray], cameras: Sequence[Camera], *,
+                       support: int = 1) -> np.ndarray:
+    """Voxels one view alone carves that other views' silhouettes need: ``grid.shape`` int16, the carving view or -1.
+
+    A voxel carved by exactly one view ``i`` is *required* when its centre
+    projects, in at least ``support`` other views, onto a silhouette pixel
+    that the exact hull (``counts == 0``; its projection ``explained``)
+    leaves unexplained: those views see something there that only view ``i``
+    denies.
+    """
+    out = np.full(grid.shape, -1, np.int16)
+    idx = np.argwhere(counts == 1)
+    if not len(idx):
+        return out
+    pts = grid.centers(idx)
+    sole = who[tuple(idx.T)]
+    votes = np.zeros(len(idx), np.int32)
+    for j, (m, e, cam) in enumerate(zip(masks, explained, cameras)):
+        if e is None:
+            continue
+        miss = m & ~e  # e: the exact hull's projection, widened by EXPLAIN_PX
+        if not miss.any():
+            continue
+        todo = np.flatnonzero((votes < support) & (sole != j))  # a voxel with its votes is not projected again
+        if not len(todo):
+            break
+        uv = _project(cam, pts[todo])
+        ok = np.isfinite(uv).all(axis=1)
+        u = np.floor(uv[ok, 0] + 0.5).astype(np.int64)
+        v = np.floor(uv[ok, 1] + 0.5).astype(np.int64)
+        h, w = m.shape
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        hit = np.zeros(len(u), bool)
+        hit[inside] = miss[v[inside], u[inside]]
+        votes[todo[np.flatnonzero(ok)[hit]]] += 1
+    keep = votes >= support
+    out[tuple(idx[keep].T)] = sole[keep]
+    return out
+
+
+def _project(cam, pts):
+    """``cam.project(pts)``; one matrix product for a camera without distortion (the same pixels to ~1e-9 px)."""
+    if np.any(cam.dist):
+        return cam.project(pts)
+    M = cam.K @ cam.R
+    b = cam.K @ np.asarray(cam.t, float).ravel()
+    uvw = pts @ M.T + b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(uvw[:, 2] > 0, uvw[:, 2], np.nan)
+        return uvw[:, :2] / w[:, None]
+
+
+def _raster_of(occ, grid):
+    """``MeshRaster`` of the boundary faces of ``occ``, found in its bounding box only (a few voxels of a large grid)."""
+    idx = np.argwhere(occ)
+    a, b = idx.min(axis=0), idx.max(axis=0) + 1
+    sub = VoxelGrid(tuple(np.asarray(grid.origin, float) + a * grid.voxel_size), grid.voxel_size, tuple(b - a))
+    return MeshRaster(*voxel_boundary_quads(occ[a[0]:b[0], a[1]:b[1], a[2]:b[2]], sub))
 
 
 def _stats(d, ring):
@@ -146,6 +257,43 @@ def _stats(d, ring):
     med = float(np.median(v))
     sd = 1.4826 * float(np.median(np.abs(v - med)))
     return float(np.mean(v)), max(sd, SD_FLOOR), float(np.percentile(v, 99.5))
+
+
+def _touching(cand, mask):
+    """The 8-connected parts of ``cand`` that touch ``mask``."""
+    import cv2
+
+    if not cand.any():
+        return cand
+    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
+    hit = np.zeros(n, bool)
+    hit[np.unique(lab[_dilate(mask, 1) & cand])] = True
+    hit[0] = False
+    return hit[lab]
+
+
+def _required_pixels(d, mask, need, prior, slack, level):
+    """Rule 4: the parts of the prior within ``slack`` px of ``need`` that differ from the background (``d > level``),
+    touch ``mask`` and hold a pixel of ``need`` (the voxels' projection is coarse: the part that joins it to the
+    silhouette is taken with it); on the new outline, only pixels showing ``EDGE_FRACTION`` of the contrast of the
+    silhouette's pixels around (as rule 5: a pixel covered by half or less shows half the contrast or less)."""
+    import cv2
+
+    zone = _dilate(need, NEED_BRIDGE_PX) & prior & ~mask & (d > level)
+    if not zone.any():
+        return zone
+    n, lab = cv2.connectedComponents(zone.astype(np.uint8), connectivity=8)
+    ok = np.zeros(n, bool)
+    ok[np.unique(lab[_dilate(mask, 1) & zone])] = True
+    has = np.zeros(n, bool)
+    has[np.unique(lab[need & zone])] = True
+    ok &= has
+    ok[0] = False
+    add = ok[lab]
+    new = mask | add
+    contrast = cv2.dilate(np.where(new, d, 0).astype(np.float32), np.ones((CONTRAST_WINDOW,) * 2, np.uint8))
+    rim = add & _dilate(~new, 1)
+    return add & ~(rim & (d < EDGE_FRACTION * contrast))
 
 
 def _edge_grow(d, mask, allowed, hi_level, rounds):
@@ -203,8 +351,8 @@ def _regions(d, missing, stats, mask, ring):
     return out
 
 
-def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int, *,
-                regions: bool = True) -> tuple[np.ndarray, dict]:
+def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int, *, keyed: bool = False,
+                need: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """One view's joint refinement: its difference image against the prior's projection.
 
     Parameters
@@ -218,30 +366,38 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int, 
     slack : int, px
         How far the prior's projection may overshoot the specimen's outline
         (voxel size and bounding-box margin).
-    regions : bool
-        Whether the region rule runs (the edge rule and the removal always do).
+    keyed : bool
+        A keyed view (Delta E to one backdrop colour): the required rule and
+        the removal only, not the edge and region rules (module docstring).
+    need : (H, W) bool, optional
+        The projection of the voxels only this view carves that other views
+        require (:func:`required_by_others`).
 
     Returns
     -------
     mask : (H, W) bool
     info : dict
-        ``added_edge``, ``added_regions``, ``removed`` (px).
+        ``added_required``, ``added_edge``, ``added_regions``, ``removed`` (px).
     """
     ring = _dilate(prior, RING_PX[1] + slack) & ~_dilate(prior, RING_PX[0] + slack)
     st = _stats(d, ring)
-    info = {"added_edge": 0, "added_regions": 0, "removed": 0}
+    info = {"added_required": 0, "added_edge": 0, "added_regions": 0, "removed": 0}
     out = mask.copy()
-    if st is not None:
+    if st is not None and not keyed:
         grown = _edge_grow(d, out, prior, st[2], EDGE_ROUNDS)
         deep = _erode(prior, slack)
-        parts = _regions(d, deep & ~grown, st, grown, ring) if regions else None
-        if parts is not None and parts.any():
+        parts = _regions(d, deep & ~grown, st, grown, ring)
+        if parts.any():
             grown2 = _edge_grow(d, grown | parts, prior, st[2], EDGE_ROUNDS)
             info["added_regions"] = int(np.count_nonzero(grown2 & ~grown))
         else:
             grown2 = grown
         info["added_edge"] = int(np.count_nonzero(grown & ~out))
         out = grown2
+    if st is not None and need is not None and need.any():  # after the rules above: what they left
+        req = _required_pixels(d, out, need, prior, slack, st[0] + NEED_SD * st[1])
+        info["added_required"] = int(np.count_nonzero(req))
+        out |= req
     keep = _dilate(prior, slack)
     removed = out & ~keep
     if np.count_nonzero(removed) <= REMOVE_FRACTION * np.count_nonzero(out):
@@ -253,11 +409,11 @@ def refine_view(d: np.ndarray, mask: np.ndarray, prior: np.ndarray, slack: int, 
 
 
 def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | None], cameras: Sequence[Camera],
-                box: tuple, *, iterations: int = ITERATIONS, regions: bool = True) -> tuple[list[np.ndarray], dict]:
+                box: tuple, *, iterations: int = ITERATIONS, keyed: bool = False) -> tuple[list[np.ndarray], dict]:
     """Masks of every view refined together (module docstring); views without a difference image are kept.
 
-    ``regions=False`` leaves out the region rule (4): keyed views (a backdrop colour, no model of the
-    background per pixel) of a dark specimen have no colour evidence for it (see SilhouetteModel.joint).
+    ``keyed=True`` (views keyed against one backdrop colour) leaves out the edge and region rules: see
+    the module docstring.
 
     Returns
     -------
@@ -275,10 +431,15 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
     box2 = (lo, hi)
     rounds, voxel, last = 0, None, [None] * len(cur)
     for _ in range(int(iterations)):
-        grid, hull = prior_hull(cur, cameras, box2)
+        grid, (counts, who) = prior_hull(cur, cameras, box2, sole=True)
+        hull = counts <= TOLERANCE
         voxel = grid.voxel_size
         if not hull.any():
             break
+        shapes = [np.shape(m)[:2] for m in cur]
+        exact = MeshRaster(*voxel_boundary_quads(counts == 0, grid))
+        explained = [_dilate(exact.mask(c, sh), EXPLAIN_PX) for c, sh in zip(cameras, shapes)]
+        need_who = required_by_others(grid, counts, who, cur, explained, cameras, support=NEED_SUPPORT)
         rounds += 1
         changed = 0
         new = []
@@ -292,7 +453,10 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
             fp = cam.pixel_footprint(np.asarray(grid.origin) + 0.5 * voxel * np.asarray(grid.shape))
             slack = int(math.ceil(2.5 * voxel / fp)) if math.isfinite(fp) and fp > 0 else 3
             prior = raster.mask(cam, np.shape(differences[i])[:2])
-            m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack, regions=regions)
+            mine = need_who == i
+            need = _raster_of(mine, grid).mask(cam, shapes[i]) if mine.any() else None
+            m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack, keyed=keyed,
+                                     need=need)
             changed += int(np.count_nonzero(m != cur[i]))
             new.append(m)
         cur = new
