@@ -549,7 +549,7 @@ class Reconstruction:
             arrays.update(self.field.to_arrays(prefix="field_"))
         elif self.field is not None:  # a dense field (hull_field(sparse=False)), as earlier versions stored it
             arrays["field"] = np.asarray(self.field, dtype=np.float32)
-        np.savez_compressed(paths["voxels"], **arrays)
+        _savez_deflate1(paths["voxels"], arrays)
         surface.write_ply(paths["ply"], self.mesh)
         surface.write_stl(paths["stl"], self.mesh)
         write_json(paths["report"], self.report)
@@ -628,6 +628,18 @@ class Reconstruction:
         if self.field is not None and self.colors is None:
             return np.asarray(self.field.dense() if isinstance(self.field, BandField) else self.field, dtype=np.float32)
         return np.asarray(self.occupancy, dtype=np.float32)
+
+
+def _savez_deflate1(path, arrays):
+    """``np.savez_compressed(path, **arrays)`` at deflate level 1 instead of 6: the same ``.npz`` (a zip of
+    ``.npy`` files, read back by ``np.load`` bit for bit), a larger file, less CPU.  The sample at 0.25 mm
+    (250 MB occupancy): 3.20 -> 4.35 MB of file, 2.00 -> 0.78 s CPU; the command's writing step 2.33 -> 0.62 s."""
+    import zipfile
+
+    with zipfile.ZipFile(path, mode="w", compression=zipfile.ZIP_DEFLATED, compresslevel=1, allowZip64=True) as z:
+        for key, value in arrays.items():
+            with z.open(key + ".npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
 
 
 def _result_grid(arrays, path, fix):

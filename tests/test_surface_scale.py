@@ -61,6 +61,23 @@ def test_band_samples_equal_the_dense_fields():
     np.testing.assert_array_equal(coarse, ndimage.map_coordinates(dense, np.moveaxis(ii, -1, 0), order=1) > 0.5)
 
 
+def test_above_on_the_band_equals_its_samples():
+    """``above``'s one-pass kernel (inside and outside blocks read once) against the band's own trilinear
+    samples point by point, bool for bool: steps 1-3, boxes running past the grid (cval there), levels on
+    and beside the block values 1.5 and -0.5, where the shortcut must not decide."""
+    f, grid, *_ = _tube(1.5, tilt_deg=25.0, r0=6.0, bulge=9.0)  # not the other tests' tube
+    band, _ = _band(f, grid, block=4)
+    assert (band.states == 2).any() and (band.states == 1).any() and (band.states == 0).any()
+    s = FieldSampler(band, grid.origin, grid.voxel_size, -0.5)
+    for step, lo in ((1, (0, 0, 0)), (2, (1, 2, 3)), (3, (2, 0, 1)), (2, (-3, -1, 0))):
+        shape = -(-(np.asarray(grid.shape) + 4 - np.asarray(lo)) // step)  # past the far faces too
+        ijk = np.stack(np.meshgrid(*[lo[d] + 0.5 * (step - 1) + step * np.arange(shape[d]) for d in range(3)],
+                                   indexing="ij"), axis=-1)
+        vals = s.at_indices(ijk)
+        for level in (0.5, 0.0, 1.5, -0.5, 1.4999995, -0.4999995, 2.0):
+            np.testing.assert_array_equal(s.above(lo, shape, step, level), vals > level)
+
+
 def test_measure_aaa_on_the_band_equals_the_dense_field():
     f, grid, p0, a = _tube(1.0)
     band, dense = _band(f, grid)

@@ -66,6 +66,31 @@ def _sample_band_serial(states, index, values, B, nx, ny, nz, ijk, cval, out):
 _PARALLEL_FROM = 100_000
 
 
+@njit(cache=True, parallel=True)
+def _above_band(states, index, values, B, nx, ny, nz, base, step, level, cval, out):
+    """``out[a, b, c] = trilinear(base + step * (a, b, c)) > level`` (as :func:`_sample_band`), a point
+    whose 8 neighbours lie in one inside or outside block taken at that block's value: its samples are
+    a weighted mean of equal values (1.5 or -0.5), whose rounding cannot cross a level more than 1e-6 away."""
+    for a in prange(out.shape[0]):
+        x = base[0] + a * step
+        for b in range(out.shape[1]):
+            y = base[1] + b * step
+            for c in range(out.shape[2]):
+                z = base[2] + c * step
+                if 0.0 <= x <= nx - 1 and 0.0 <= y <= ny - 1 and 0.0 <= z <= nz - 1:
+                    i0 = min(int(x), nx - 2) if nx > 1 else 0
+                    j0 = min(int(y), ny - 2) if ny > 1 else 0
+                    k0 = min(int(z), nz - 2) if nz > 1 else 0
+                    bx, by, bz = i0 // B, j0 // B, k0 // B
+                    if (bx == (i0 + 1) // B and by == (j0 + 1) // B and bz == (k0 + 1) // B
+                            and states[bx, by, bz] != 2):
+                        v = 1.5 if states[bx, by, bz] == 1 else -0.5
+                        if abs(v - level) > 1e-6:
+                            out[a, b, c] = v > level
+                            continue
+                out[a, b, c] = _trilinear(states, index, values, B, nx, ny, nz, x, y, z, cval) > level
+
+
 class FieldSampler:
     """Trilinear samples of a field on a voxel grid.
 
@@ -128,6 +153,11 @@ class FieldSampler:
         shape = tuple(int(s) for s in shape)
         out = np.empty(shape, dtype=bool)
         base = np.asarray(lo, dtype=np.float64) + 0.5 * (step - 1)
+        if self.band:  # one pass, inside and outside blocks read once (the sample, 0.25 mm: 0.56 -> 0.17 s CPU)
+            f = self.volume
+            _above_band(f.states, f.index, f.values, f.block, *f.shape, base, float(step), float(level),
+                        self.cval, out)
+            return out
         j, k = np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij")
         plane = np.stack([np.zeros_like(j), j, k], axis=-1).astype(np.float64) * step + base
         for i in range(shape[0]):  # a plane at a time: no (N, 3) coordinates of the whole box
