@@ -123,6 +123,30 @@ def test_detect_board_colour_image_and_none():
     assert detect_board(grey, Pattern((8, 6), 20.0)) is None
 
 
+def test_detect_board_repeated_image():
+    """A second detection of the same pixels (served by the per-process cache) equals the first, is not
+    the caller's array, and another image or board size is detected afresh."""
+    from organlab.calibration import _board
+
+    K = np.array([[700.0, 0, 319.5], [0, 700.0, 239.5], [0, 0, 1]])
+    imgs, truths = [], []
+    for roll in (20.0, 200.0):  # the same board turned half a turn: its corners come in board order both times
+        R, t = _face_pose(roll, tilt_deg=20.0)
+        imgs.append(_warp_board(K, R, t, PAT, (640, 480)))
+        truths.append(Camera(K, None, image_size=(640, 480)).project(board_points(PAT) @ R.T + t))
+    _board._cache.clear()
+    first = detect_board(imgs[0], PAT)
+    first_copy = first.copy()
+    first[:] = -1.0  # the caller may change what it got
+    again = detect_board(imgs[0].copy(), PAT)  # same pixels, other array
+    np.testing.assert_array_equal(again, first_copy)
+    np.testing.assert_allclose(again, truths[0], atol=0.25)
+    other = detect_board(imgs[1], PAT)
+    np.testing.assert_allclose(other, truths[1], atol=0.25)
+    assert np.abs(other - again).max() > 10  # not the first image's corners
+    assert detect_board(imgs[0], Pattern((8, 6), 20.0)) is None  # the board size is part of the key
+
+
 # ------------------------------------------------------------- intrinsics
 def test_fit_intrinsics_accuracy_and_uncertainty():
     truth = S.default_camera()
