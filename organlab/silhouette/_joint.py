@@ -259,19 +259,6 @@ def _stats(d, ring):
     return float(np.mean(v)), max(sd, SD_FLOOR), float(np.percentile(v, 99.5))
 
 
-def _touching(cand, mask):
-    """The 8-connected parts of ``cand`` that touch ``mask``."""
-    import cv2
-
-    if not cand.any():
-        return cand
-    n, lab = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
-    hit = np.zeros(n, bool)
-    hit[np.unique(lab[_dilate(mask, 1) & cand])] = True
-    hit[0] = False
-    return hit[lab]
-
-
 def _required_pixels(d, mask, need, prior, slack, level):
     """Rule 4: the parts of the prior within ``slack`` px of ``need`` that differ from the background (``d > level``),
     touch ``mask`` and hold a pixel of ``need`` (the voxels' projection is coarse: the part that joins it to the
