@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._deviation import _Surface, _surface, surface_deviation
+from ._deviation import _distances, _Surface, _surface, surface_deviation
 from ._mesh import Mesh
 from ._quality import mesh_quality
 from ._remesh import _face_min_angles, fix_slivers
@@ -174,6 +174,8 @@ def insert_lost(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: fl
         out = fix_slivers(Mesh(V2, F2), reference, target_mm=target_mm, min_angle=min_angle,
                           tol_mm=0.1 * float(voxel_size), rounds=12, only=only)
     return out, inserted
+
+
 def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: float, target_mm: float,
                  rounds: int = 4, deviation: dict | None = None, distances: tuple | None = None):
     """``(Mesh, record, deviation)``: :func:`insert_lost` then :func:`pull_back`, ``rounds`` times at most, until the
@@ -200,8 +202,8 @@ def keep_on_data(mesh: Mesh, reference: Mesh, *, voxel_size: float, min_angle: f
         return mesh, record, best_dev
     # where the two surfaces part: the raw vertices the finished surface lost, the finished vertices off the raw
     if distances is None:
-        _, d_out, _ = ref.closest(V)
-        _, d_in, _ = _Surface(mesh).closest(ref.v)
+        d_out, d_in = _distances(mesh, reference, ref)
+        d_out = d_out[:len(V)]  # the vertices' (the face centres' follow)
     else:
         d_out, d_in = distances
     seeds = np.concatenate([ref.v[d_in > lim], V[d_out > lim]])
