@@ -66,9 +66,15 @@ def _rim_geometry(camera, radius, z, wall_mm, n=N_RIM):
     th = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     c, s = np.cos(th), np.sin(th)
     ring = lambda r, zz: np.stack([r * c, r * s, np.full(n, zz)], axis=1)  # noqa: E731
+    ring_at = lambda t, r, zz: np.stack([r * np.cos(t), r * np.sin(t), np.full(n, zz)], axis=1)  # noqa: E731
     p = camera.project(ring(radius, z))
-    out = camera.project(ring(radius + 0.5, z))
-    nrm = out - p
+    # the normal of the projected rim (perpendicular to its image), pointing outward: the image of the radial
+    # direction is oblique to it (44 degrees at 45 degrees round the rim under a 25 degree elevation), and an
+    # offset measured along an oblique direction changes when the rim's points slide along it, i.e. under a turn
+    # of the camera about the axis, which no image shows
+    tang = camera.project(ring_at(th + 1e-4, radius, z)) - camera.project(ring_at(th - 1e-4, radius, z))
+    nrm = np.stack([tang[:, 1], -tang[:, 0]], axis=1)
+    nrm *= np.sign(np.einsum("ij,ij->i", nrm, camera.project(ring(radius + 0.5, z)) - p))[:, None]
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     low = camera.project(ring(radius, z - wall_mm))
     gap = np.einsum("ij,ij->i", low - p, nrm)
