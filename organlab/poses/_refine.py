@@ -82,6 +82,10 @@ class PoseRefinement:
         Per-view RMS of the tangent residuals, px, before and after (``after`` = before when not run).
     angle_corrections_deg : (n,) float
         Per-view table-angle (or ring-angle) correction, degrees (zeros when not accepted).
+    angle_sd_deg : (n,) float
+        Per-view sd of the fitted angle, degrees, relative to view 0 (which fixes the specimen's orientation:
+        0), from the fit's normal equations at the solution (:func:`_angle_sd`); NaN when no angles were fitted.
+        A view whose outline barely moves with its angle has a large sd: its angle is weakly determined.
     camera_rotation_deg : float
     camera_center_shift_mm : (3,) float
         Change of the shared camera pose (turntable model), world frame.
@@ -108,6 +112,7 @@ class PoseRefinement:
     before_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     after_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     angle_corrections_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    angle_sd_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
     camera_rotation_deg: float = 0.0
     camera_center_shift_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     slip: dict | None = None
@@ -137,9 +142,11 @@ class PoseRefinement:
         if len(self.before_px):
             d["tangent_rms_px"] = {"before_median": _f(np.nanmedian(self.before_px)), "before_max": _f(np.nanmax(self.before_px)),
                                    "after_median": _f(np.nanmedian(self.after_px)), "after_max": _f(np.nanmax(self.after_px))}
+            sd = self.angle_sd_deg if len(self.angle_sd_deg) == len(self.before_px) else np.full(len(self.before_px), np.nan)
             d["views"] = [
-                {"view": self._name(i), "before_px": _f(b), "after_px": _f(a), "angle_correction_deg": _f(c)}
-                for i, (b, a, c) in enumerate(zip(self.before_px, self.after_px, self.angle_corrections_deg))
+                {"view": self._name(i), "before_px": _f(b), "after_px": _f(a), "angle_correction_deg": _f(c),
+                 "angle_sd_deg": _f(e)}
+                for i, (b, a, c, e) in enumerate(zip(self.before_px, self.after_px, self.angle_corrections_deg, sd))
             ]
             d["camera_rotation_deg"] = _f(self.camera_rotation_deg)
             d["camera_center_shift_mm"] = [_f(v) for v in self.camera_center_shift_mm]
@@ -401,7 +408,7 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *
     refined = [cam0.with_pose(R[i], t[i]) for i in range(model.n)]
     rot = float(np.rad2deg(np.linalg.norm(w)))
     shift = refined[0].center - (cameras[0].center if model.kind == "posed" else model.base.center)
-    info = dict(after_px=after, angle_corrections_deg=d, camera_rotation_deg=rot, camera_center_shift_mm=shift,
+    info = dict(after_px=after, angle_corrections_deg=d, angle_sd_deg=_angle_sd(pb, x), camera_rotation_deg=rot, camera_center_shift_mm=shift,
                 slip=slip, gate=gate, plate=plate_entry)
     base.update(info)
     big = _too_large(rot, shift, d, slip)
@@ -462,6 +469,35 @@ def _polish(pb, x):
         if info["cost"] < cost0:
             return x2
     return x
+
+
+def _angle_sd(pb, x):
+    """Each view's angle sd at the solution, degrees ``(n,)`` (0 for view 0, which fixes the orientation; NaN
+    when the angles were not fitted): the inverse of the robust normal equations (the soft-L1 weights at ``x``,
+    data and prior), the tangents' noise estimated from their residuals at ``x`` instead of the assumed
+    :data:`~._model.SIGMA_PX`.  A view whose tangents barely move with its angle has a large sd."""
+    m = pb.model
+    out = np.full(m.n, np.nan)
+    if not m.angles_free:
+        return out
+    ns = m.n_shared
+    r = pb.residuals(x)
+    J = pb.jacobian(x)
+    nd = 2 * len(pb.I)
+    used = pb.keep.ravel() > 0
+    noise = float(np.sqrt(np.mean((r[:nd][used] * _model.SIGMA_PX) ** 2))) if used.any() else _model.SIGMA_PX
+    scale = np.ones(len(r))
+    scale[:nd] = _model.SIGMA_PX / max(noise, 1e-6)  # data rows in units of the measured noise
+    _, wt = _model._soft_l1(r, _model.F_SCALE)
+    Js = J * scale[:, None]
+    A = np.einsum("pi,pj->ij", Js, Js * wt[:, None], optimize=False)
+    try:
+        cov = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return out
+    out[0] = 0.0
+    out[1:] = np.sqrt(np.clip(np.diag(cov)[ns : ns + m.n - 1], 0.0, None))
+    return out
 
 
 def _too_large(rot_deg, shift_mm, angles_deg, slip):
