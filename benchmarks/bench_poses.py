@@ -15,6 +15,7 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
   volume), and the same render with the true angles; ``driftb_br11``: another render and drift (seed 45), no
   default chosen on it; ``driftc_br11``: a third (seeds 61 / 65), rendered after the angles' prior was chosen;
   ``driftd_br11``: a fourth (seeds 71 / 75), rendered after the view-by-view scan was added;
+  ``drifte_br13`` / ``driftf_br3``: the same drift on ``aaa-13+branch`` / ``aaa-3+branch`` (seeds 81 / 85, 91 / 95);
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
 * ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
@@ -80,6 +81,9 @@ def scenes(n=36, size=(640, 480)):
         "driftc_br11": dict(base, seed=61, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 65)),
         # and a fourth, rendered after the view-by-view scan (_refine._polish) was added on seeing driftc_br11
         "driftd_br11": dict(base, seed=71, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 75)),
+        # two more, on other branched AAAs, rendered to check the angles' sd and the maximum (session 7, nothing chosen on them)
+        "drifte_br13": dict(base, seed=81, specimen="aaa-13+branch", true_angles_deg=drift_angles(n, 85)),
+        "driftf_br3": dict(base, seed=91, specimen="aaa-3+branch", true_angles_deg=drift_angles(n, 95)),
     }
 
 
