@@ -132,3 +132,18 @@ def test_outline_rays_of_the_box_are_the_whole_frames():
         cov[cov > 0] = np.clip(cov[cov > 0] + g.normal(0, 0.02, (cov > 0).sum()), 0, 1)
         got, ref = _outline_rays(cov, cam), outline_rays(cov, cam)[0]
         assert got.shape == ref.shape and np.abs(got - ref).max() < 1e-12, np.abs(got - ref).max()
+
+
+def test_warm_kernels_load_the_specialisation_the_check_calls(scene):
+    """``organlab.poses.warm_kernels`` (the reconstruct command runs it on a thread while the session loads) must load
+    the very specialisation the check calls, or the check still pays the load (45 ms CPU): after the check, warming
+    adds no signature."""
+    from organlab.poses import _outline, warm_kernels
+    from organlab.poses._refine import _outlines
+
+    _, s, cal, sils, model = scene
+    _outlines(list(sils), as_arrays(list(sils), "coverage"), model.images, np.asarray(model.background))  # as the stage
+    used = set(_outline._band_coverage.signatures)
+    assert used
+    warm_kernels()
+    assert set(_outline._band_coverage.signatures) == used
