@@ -480,9 +480,9 @@ def _load_session(a):
 
 def _load_stages():
     """Import the stages (numba, scipy, OpenCV: about 0.8 s CPU) and load the silhouettes' and the poses check's
-    numba kernels from their cache (numba's own registries with the first one: 0.5 s), on a thread while ``reconstruct`` loads
-    the session: Python holding the GIL here, decoding the images there (cv2 releases it).  A failure here is
-    left to the run itself, which imports and calls the same things and says what went wrong."""
+    numba kernels from their cache (numba's own registries with the first one: 0.5 s), on a thread while
+    ``reconstruct`` loads the session: Python holding the GIL here, decoding the images there (cv2 releases it).
+    A failure here is left to the run itself, which imports and calls the same things and says what went wrong."""
     try:
         reconstruct.resolve()
         warm_kernels()
