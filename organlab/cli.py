@@ -60,6 +60,7 @@ summary_table = later("organlab.pipeline", "summary_table")
 write_outputs = later("organlab.pipeline", "write_outputs")
 init_session = later("organlab.scaffold", "init_session")
 warm_kernels = later("organlab.silhouette", "warm_kernels")
+warm_pose_kernels = later("organlab.poses", "warm_kernels")
 mesh_result = later("organlab.surface", "mesh_result")
 carved_depth_picture = later("organlab.coloring", "carved_depth_picture")
 Reconstruction = later("organlab.engine", "Reconstruction")
@@ -478,13 +479,14 @@ def _load_session(a):
 
 
 def _load_stages():
-    """Import the stages (numba, scipy, OpenCV: about 0.8 s CPU) and load the silhouettes' numba kernels from
-    their cache (numba's own registries with the first one: 0.5 s), on a thread while ``reconstruct`` loads
-    the session: Python holding the GIL here, decoding the images there (cv2 releases it).  A failure here is
-    left to the run itself, which imports and calls the same things and says what went wrong."""
+    """Import the stages (numba, scipy, OpenCV: about 0.8 s CPU) and load the silhouettes' and the poses check's
+    numba kernels from their cache (numba's own registries with the first one: 0.5 s), on a thread while
+    ``reconstruct`` loads the session: Python holding the GIL here, decoding the images there (cv2 releases it).
+    A failure here is left to the run itself, which imports and calls the same things and says what went wrong."""
     try:
         reconstruct.resolve()
         warm_kernels()
+        warm_pose_kernels()  # the poses check's edge coverage (45 ms CPU)
     except Exception:  # noqa: BLE001 (the run reports it)
         pass
 

@@ -30,6 +30,7 @@ plate's rim: the camera's distance to the axis and height), ``_refine``
 dropped (docs/trust.md says why).
 """
 
+from ._outline import warm_kernels
 from ._refine import FLAG_PX, FLAG_SUBPIXEL_PX, MODES, PoseRefinement, refine_poses
 
-__all__ = ["refine_poses", "PoseRefinement", "MODES", "FLAG_PX", "FLAG_SUBPIXEL_PX"]
+__all__ = ["refine_poses", "PoseRefinement", "MODES", "FLAG_PX", "FLAG_SUBPIXEL_PX", "warm_kernels"]
