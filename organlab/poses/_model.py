@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..camera import Camera, rot_z
+from ..camera import Camera
 from ._tangents import MAX_HALF_ANGLE_DEG, pair_angle_derivatives, pair_angles
 
 #: Each view's angle correction, held loosely (its drift is what the tangents measure): a tight hold pulls
