@@ -114,16 +114,11 @@ def _frames(centres, centroid_w, I, J):
 def _extremes(q):
     """``argmin``, ``argmax`` over axis 1 of the angles ``atan2(q[..., 1], q[..., 0])`` of ``(P, M, 2)`` ``q``.
 
-    Rows whose points all lie ahead (``q[..., 0] > 0``, every usable pair: its planes within
-    :data:`MAX_HALF_ANGLE_DEG`) compare ``tan`` (a division, not an arctangent per point).
+    When every point lies ahead (``q[..., 0] > 0``: the usable pairs, their planes within
+    :data:`MAX_HALF_ANGLE_DEG`) ``tan`` is compared (a division, not an arctangent per point).
     """
     x, y = q[..., 0], q[..., 1]
-    ahead = (x > 0).all(axis=1)
-    if ahead.all():
-        t = y / x
-    else:
-        t = np.arctan2(y, x)
-        t[ahead] = np.arctan(y[ahead] / x[ahead])
+    t = y / x if (x > 0).all() else np.arctan2(y, x)
     return t.argmin(axis=1), t.argmax(axis=1)
 
 
