@@ -85,6 +85,43 @@ def pad_rays(ray_sets):
     return out
 
 
+def _norm(v):
+    return np.sqrt(np.einsum("pk,pk->p", v, v))
+
+
+def _cross(a, b):
+    """``np.cross`` of ``(..., 3)`` arrays, without its axis handling (a tenth of its time on small arrays)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _frames(centres, centroid_w, I, J):
+    """Each pair's baseline ``b`` and the plane through view ``i``'s middle ray (``u1``; ``u2 = b x u1``)."""
+    b = centres[J] - centres[I]
+    length = _norm(b)
+    b /= length[:, None]
+    rc = centroid_w[I]
+    rc = rc / _norm(rc)[:, None]
+    u1 = rc - np.einsum("pk,pk->p", rc, b)[:, None] * b
+    sin_i = _norm(u1)
+    u1 /= sin_i[:, None]
+    u2 = _cross(b, u1)
+    rcj = centroid_w[J] / _norm(centroid_w[J])[:, None]
+    sin_j = _norm(rcj - np.einsum("pk,pk->p", rcj, b)[:, None] * b)
+    return b, u1, u2, sin_i, sin_j, length
+
+
+def _extremes(q):
+    """``argmin``, ``argmax`` over axis 1 of the angles ``atan2(q[..., 1], q[..., 0])`` of ``(P, M, 2)`` ``q``.
+
+    When every point lies ahead (``q[..., 0] > 0``: the usable pairs, their planes within
+    :data:`MAX_HALF_ANGLE_DEG`) ``tan`` is compared (a division, not an arctangent per point).
+    """
+    x, y = q[..., 0], q[..., 1]
+    t = y / x if (x > 0).all() else np.arctan2(y, x)
+    return t.argmin(axis=1), t.argmax(axis=1)
+
+
 def pair_angles(rays_w, centres, centroid_w, I, J, *, return_index=False):
     """Extremal epipolar planes of each view of each pair, as angles about the baseline.
 
@@ -98,6 +135,8 @@ def pair_angles(rays_w, centres, centroid_w, I, J, *, return_index=False):
         A ray toward the silhouette's middle, per view, world frame.
     I, J : (P,) int
         The pairs.
+    return_index : bool
+        Also return which ray of each view gives each extremal plane.
 
     Returns
     -------
@@ -107,22 +146,71 @@ def pair_angles(rays_w, centres, centroid_w, I, J, *, return_index=False):
     sin_i, sin_j : (P,) float64
         Sine of the angle between the middle ray and the baseline (pixels per
         radian of plane rotation, divided by the focal length).
+    index : (P, 4) int
+        With ``return_index``: the rays (of view ``i``, ``i``, ``j``, ``j``) giving ``psi``.
     """
-    b = centres[J] - centres[I]
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    rc = centroid_w[I]
-    rc = rc / np.linalg.norm(rc, axis=1, keepdims=True)
-    u1 = rc - np.sum(rc * b, axis=1, keepdims=True) * b
-    sin_i = np.linalg.norm(u1, axis=1)
-    u1 /= sin_i[:, None]
-    u2 = np.cross(b, u1)
-    ri, rj = rays_w[I], rays_w[J]
-    pi = np.arctan2(np.einsum("pmk,pk->pm", ri, u2), np.einsum("pmk,pk->pm", ri, u1))
-    pj = np.arctan2(np.einsum("pmk,pk->pm", rj, u2), np.einsum("pmk,pk->pm", rj, u1))
-    rcj = centroid_w[J] / np.linalg.norm(centroid_w[J], axis=1, keepdims=True)
-    sin_j = np.linalg.norm(rcj - np.sum(rcj * b, axis=1, keepdims=True) * b, axis=1)
-    psi = np.stack([pi.min(axis=1), pi.max(axis=1), pj.min(axis=1), pj.max(axis=1)], axis=1)
+    _, u1, u2, sin_i, sin_j, _ = _frames(centres, centroid_w, I, J)
+    U = np.stack([u1, u2], axis=2)  # (P, 3, 2)
+    qi, qj = rays_w[I] @ U, rays_w[J] @ U  # (P, M, 2): each ray across and along the plane through the middle ray
+    idx = np.stack([*_extremes(qi), *_extremes(qj)], axis=1)
+    P = np.arange(len(I))[:, None]
+    sel = np.concatenate([qi[P, idx[:, :2]], qj[P, idx[:, 2:]]], axis=1)  # (P, 4, 2)
+    psi = np.arctan2(sel[..., 1], sel[..., 0])
     if return_index:
-        idx = np.stack([pi.argmin(axis=1), pi.argmax(axis=1), pj.argmin(axis=1), pj.argmax(axis=1)], axis=1)
         return psi, sin_i, sin_j, idx
     return psi, sin_i, sin_j
+
+
+def pair_angle_derivatives(rays_w, centres, centroid_w, I, J, index):
+    """How the extremal planes of :func:`pair_angles` turn with the views' poses (the chain rule).
+
+    Each extremal plane touches one ray (``index``, from :func:`pair_angles`); while that ray stays the
+    extremal one, its angle ``atan2(r . u2, r . u1)`` moves with the ray (the view turned about its centre)
+    and with the frame ``(u1, u2, b)``.  The frame turns with the baseline ``b`` and, about ``b``, with view
+    ``i``'s middle ray: that turn about the baseline moves all four angles of a pair alike, so it is left
+    out here; differences between view ``i``'s and view ``j``'s angles (the residuals) are exact.
+
+    Parameters
+    ----------
+    rays_w, centres, centroid_w, I, J
+        As for :func:`pair_angles`.
+    index : (P, 4) int
+        The extremal rays (``return_index`` of :func:`pair_angles`).
+
+    Returns
+    -------
+    turn : (P, 4, 3) float64
+        ``d psi / d theta`` (rad per rad): ``theta`` a turn of that angle's view (view ``i`` for the first two,
+        ``j`` for the last two) about its centre, a rotation vector in the world frame (its rays ``r`` move
+        by ``theta x r``).
+    move : (P, 4, 3) float64
+        ``d psi / d (C_j - C_i)`` (rad per mm), world frame.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> rays = rng.normal([0.0, 0.0, 1.0], 0.1, (2, 20, 3))
+    >>> C, cen, I, J = np.array([[0.0, 0, -10], [3.0, 0, -9]]), rays.mean(1), np.array([0]), np.array([1])
+    >>> psi, _, _, idx = pair_angles(rays, C, cen, I, J, return_index=True)
+    >>> turn, move = pair_angle_derivatives(rays, C, cen, I, J, idx)
+    >>> dC = np.array([0.0, 1e-6, 0.0])                      # view j's centre moved 1e-6 mm
+    >>> C2 = C.copy(); C2[1] += dC
+    >>> psi2 = pair_angles(rays, C2, cen, I, J)[0]
+    >>> d = (psi2 - psi) - move @ dC                       # first order, up to a common turn
+    >>> bool(np.ptp(d) < 1e-12)
+    True
+    """
+    b, u1, u2, _, _, length = _frames(centres, centroid_w, I, J)
+    r = np.concatenate([rays_w[I[:, None], index[:, :2]], rays_w[J[:, None], index[:, 2:]]], axis=1)  # (P, 4, 3)
+    U = np.stack([u1, u2], axis=2)
+    ac = r @ U  # (P, 4, 2)
+    a, c = ac[..., 0], ac[..., 1]
+    den = a * a + c * c
+    g = (a[..., None] * u2[:, None] - c[..., None] * u1[:, None]) / den[..., None]  # d psi / d r
+    turn = _cross(r, g)
+    # the frame turns by w (d u = w x u) when the baseline moves: w's part across b is
+    # u2 (u1 . db) - u1 (u2 . db), and d psi = -w . turn
+    tu = turn @ U
+    k = u1[:, None] * tu[..., 1:] - u2[:, None] * tu[..., :1]
+    return turn, -k / length[:, None, None]
