@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import CalibrationError
 from ..session import Pattern
+from . import _common
 from ._common import _HALF_CAP, _UPSAMPLE
 
 def _check_pattern(pattern):
@@ -264,8 +265,6 @@ def _disk_file(key):
     if _code_digest is None:
         import cv2
 
-        from . import _common
-
         h = hashlib.blake2b(cv2.__version__.encode(), digest_size=8)
         for mod in (__file__, _common.__file__):
             h.update(Path(mod).read_bytes())
@@ -275,10 +274,14 @@ def _disk_file(key):
 
 
 def _disk_read(path):
+    import zipfile
+
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (np.load leaves a damaged file open)
             corners, oriented = np.array(z["corners"], np.float64), bool(z["oriented"])
-    except (OSError, ValueError, KeyError):  # absent, or half-written by a process killed before the rename
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # absent, or damaged: measured again
+        return None
+    if corners.ndim != 2 or corners.shape[1:] != (2,):
         return None
     return (None if corners.size == 0 else corners), oriented
 
