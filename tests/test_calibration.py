@@ -147,6 +147,56 @@ def test_detect_board_repeated_image():
     assert detect_board(imgs[0], Pattern((8, 6), 20.0)) is None  # the board size is part of the key
 
 
+def test_detections_kept_across_processes(tmp_path, monkeypatch):
+    """ORGANLAB_DETECTION_CACHE: a detection is written once and read back by a process that has not seen
+    the image (here: the process cache emptied and the detector made to fail), identical; a damaged file or
+    another detector's code is measured again."""
+    from organlab.calibration import _board
+
+    K = np.array([[700.0, 0, 319.5], [0, 700.0, 239.5], [0, 0, 1]])
+    R, t = _face_pose(35.0, tilt_deg=15.0)
+    img = _warp_board(K, R, t, PAT, (640, 480))
+    truth = Camera(K, None, image_size=(640, 480)).project(board_points(PAT) @ R.T + t)
+    folder = tmp_path / "detections"
+    monkeypatch.setenv(_board.DETECTION_CACHE_ENV, str(folder))
+    monkeypatch.setattr(_board, "_cache", type(_board._cache)())
+    first = detect_board(img, PAT, require_orientation=True)
+    np.testing.assert_allclose(first, truth, atol=0.25)
+    blank = np.full((480, 640), 128, np.uint8)
+    assert detect_board(blank, PAT) is None  # "no board" is kept too
+    files = sorted(folder.glob("*.npz"))
+    assert len(files) == 2 and not list(folder.glob(".*"))  # no temporary file left
+
+    def fail(*a):
+        raise AssertionError("measured again")
+
+    real = _board._find_corners
+    monkeypatch.setattr(_board, "_find_corners", fail)
+    _board._cache.clear()
+    np.testing.assert_array_equal(detect_board(img, PAT, require_orientation=True), first)
+    assert detect_board(blank, PAT) is None
+    # a half-written file (a process killed before its rename leaves only the temporary one; a damaged
+    # one is read as absent) and another version of the detector's code: measured again
+    monkeypatch.setattr(_board, "_find_corners", real)
+    _board._cache.clear()
+    mine = next(f for f in files if f.stat().st_size > 600)  # the board's (54 corners), not the blank's
+    mine.write_bytes(mine.read_bytes()[:100])
+    np.testing.assert_array_equal(detect_board(img, PAT, require_orientation=True), first)
+    assert mine.stat().st_size > 600  # written again, whole
+    monkeypatch.setattr(_board, "_code_digest", "0" * 16)
+    monkeypatch.setattr(_board, "_find_corners", fail)
+    _board._cache.clear()
+    with pytest.raises(AssertionError, match="measured again"):
+        detect_board(img, PAT)
+    # unset: nothing read or written
+    monkeypatch.delenv(_board.DETECTION_CACHE_ENV)
+    monkeypatch.setattr(_board, "_find_corners", real)
+    _board._cache.clear()
+    n = len(list(folder.iterdir()))
+    np.testing.assert_array_equal(detect_board(img, PAT, require_orientation=True), first)
+    assert len(list(folder.iterdir())) == n
+
+
 # ------------------------------------------------------------- intrinsics
 def test_fit_intrinsics_accuracy_and_uncertainty():
     truth = S.default_camera()

@@ -106,14 +106,23 @@ def test_calibrate_killed_then_rerun(session, tmp_path, kill):
     assert _leftovers(out) == [] and (out / "calibration_check").is_dir()
 
 
+@pytest.fixture(scope="module")
+def meshed(reference, tmp_path_factory):
+    """An uninterrupted ``organlab mesh --repair`` of a copy of the reference: its folder (made once for
+    both kill points: the same command on the same input)."""
+    ref = shutil.copytree(reference, tmp_path_factory.mktemp("meshed") / "ref")
+    p = _organlab(["mesh", str(ref), "--repair"])
+    assert p.returncode == 0, p.stderr
+    return ref
+
+
 @pytest.mark.parametrize("kill", [
     ("organlab.surface._result:finish_surface", 1),  # before any surface file
     ("organlab.surface._result:write_obj", 1),  # mesh.ply and mesh.stl written, the rest not
 ], ids=["finishing", "writing"])
-def test_mesh_killed_then_rerun(reference, tmp_path, kill):
+def test_mesh_killed_then_rerun(reference, meshed, tmp_path, kill):
     folder = shutil.copytree(reference, tmp_path / "r")
-    ref = shutil.copytree(reference, tmp_path / "ref")
-    assert _organlab(["mesh", str(ref), "--repair"]).returncode == 0
+    ref = meshed
     args = ["mesh", str(folder), "--repair"]
     _killed(args, kill)
     done = _organlab(args)

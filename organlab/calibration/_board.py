@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import CalibrationError
 from ..session import Pattern
+from . import _common
 from ._common import _HALF_CAP, _UPSAMPLE
 
 def _check_pattern(pattern):
@@ -242,6 +245,57 @@ _CACHE_SIZE = 512
 _cache: OrderedDict = OrderedDict()
 _cache_lock = threading.Lock()
 
+#: Environment variable naming a folder where detections are also kept across processes (off when unset or
+#: empty): a run of many fresh processes over the same board images (the test suite's notebook kernels and
+#: command-line subprocesses, a class's notebooks) detects each image once.  One small ``.npz`` per image
+#: (corners and orientation, no pickle), named by the key above and by a digest of the detector's code
+#: (this module, ``_common``) and OpenCV's version, so that a changed detector never reads an old result.
+#: Written to a temporary name and renamed (processes may share the folder); an unreadable file is
+#: detected again.  Delete the folder to drop it.
+DETECTION_CACHE_ENV = "ORGANLAB_DETECTION_CACHE"
+_code_digest = None
+
+
+def _disk_file(key):
+    """The cache file of ``key`` under $ORGANLAB_DETECTION_CACHE, or None when that is unset."""
+    global _code_digest
+    folder = os.environ.get(DETECTION_CACHE_ENV)
+    if not folder:
+        return None
+    if _code_digest is None:
+        import cv2
+
+        h = hashlib.blake2b(cv2.__version__.encode(), digest_size=8)
+        for mod in (__file__, _common.__file__):
+            h.update(Path(mod).read_bytes())
+        _code_digest = h.hexdigest()
+    (h, w), (nx, ny), digest = key
+    return Path(folder) / f"{h}x{w}-{nx}x{ny}-{digest.hex()}-{_code_digest}.npz"
+
+
+def _disk_read(path):
+    import zipfile
+
+    try:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # (np.load leaves a damaged file open)
+            corners, oriented = np.array(z["corners"], np.float64), bool(z["oriented"])
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # absent, or damaged: measured again
+        return None
+    if corners.ndim != 2 or corners.shape[1:] != (2,):
+        return None
+    return (None if corners.size == 0 else corners), oriented
+
+
+def _disk_write(path, hit):
+    corners, oriented = hit
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(tmp, corners=np.zeros((0, 2)) if corners is None else corners, oriented=np.bool_(oriented))
+        os.replace(tmp, path)
+    except OSError:  # a read-only or full disk: the cache is only an optimisation
+        tmp.unlink(missing_ok=True)
+
 
 def _detect(image, pattern):
     grey = _as_grey(image)
@@ -251,8 +305,13 @@ def _detect(image, pattern):
         if hit is not None:
             _cache.move_to_end(key)
     if hit is None:
-        raw = _find_corners(grey, pattern.inner_corners)
-        hit = (None, False) if raw is None else _orient(grey, raw, pattern.inner_corners)
+        disk = _disk_file(key)
+        hit = None if disk is None else _disk_read(disk)
+        if hit is None:
+            raw = _find_corners(grey, pattern.inner_corners)
+            hit = (None, False) if raw is None else _orient(grey, raw, pattern.inner_corners)
+            if disk is not None:
+                _disk_write(disk, hit)
         with _cache_lock:
             _cache[key] = hit
             while len(_cache) > _CACHE_SIZE:
@@ -299,7 +358,9 @@ def detect_board(image: np.ndarray, pattern: Pattern, *, require_orientation: bo
     and Y = Z x X with Z toward the camera, so a detector's 180-degree flip
     cannot change the board frame.  The result is kept for the process
     (keyed by the grey pixels and ``inner_corners``): detecting the same
-    image again returns the same corners without measuring them again.
+    image again returns the same corners without measuring them again;
+    with the environment variable ``ORGANLAB_DETECTION_CACHE`` naming a
+    folder, also for the processes started later that name the same folder.
 
     Parameters
     ----------
