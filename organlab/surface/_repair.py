@@ -713,10 +713,9 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     int
         Faces removed (0 when ``mesh`` is returned).
     """
-    from scipy.spatial import cKDTree
-
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
 
     tree = cKDTree(seeds)
     d, _ = tree.query(mesh.vertices)
