@@ -29,6 +29,18 @@ raw surfaces of this script cached): the last step (stay_on_data) made local -- 
 before the step: still over 1, a sheet 0.12-0.2 mm thick at (-13.6, 6.6, 61.7) mm); dino 1 mm with the joint
 silhouettes (auto) 6.25 -> 5.34 s, the same 34 734 faces, 0.033 / 0.97 voxel, worst view IoU +0.0014; the
 1 mm sample unchanged (the step does not run there).
+Issue 21 (helper `sheets`, 2026-12-03, load 4-16 on 2 cores, CPU best of 3 alternating with e5194df; the raw
+surfaces cached): the 1.29 voxels were a tunnel 0.5 mm across under a wall 0.08-0.2 mm thin, with a 0.1 mm pocket, at
+(-13.6, 7.0, 61.8) mm, where four faces stayed below 20 degrees and the sliver cut of one target edge (0.69 mm, 2.8
+voxels) filled over the tunnel (2.14 voxels off before stay_on_data).  Which figure a run gives depends on the raw
+surface's last bits (OpenCV's threads: three reconstructions up to 6e-6 mm apart gave 0.88, 0.90 and 1.29 voxels).
+The cut now takes the smallest radius that keeps the angle within a voxel (0.0875 mm, 33-36 faces), and repairs only
+the pieces it touches.  0.25 mm sample: 0.60 / 0.69 / 0.69 voxel on those three (1.29 / 0.88 / 0.90), 21.27 degrees
+(21.06 / 20.03 / 20.24), 143 980-144 084 faces, volume +0.000 %, stay_on_data not needed; finishing 15.7 s CPU
+against 18.3 (the 1.29 one), 14.7 against 18.2 (the 0.88 one).  1 mm sample: the same mesh (20 934 faces, 30.4
+degrees, 0.021 / 0.35 voxel), 0.71 against 0.73 s.  Dino 1 mm (joint auto): the cut's repair had dropped a separate
+piece 57 mm away (3.1 voxels of raw surface lost): 34 102 faces (33 890), 20.8 degrees (20.1), -0.0006 % (-0.0055 %),
+0.032 / 0.85 voxel (0.033 / 0.96), 2.76 s against 2.62 s CPU.
 """
 
 from __future__ import annotations

@@ -210,3 +210,71 @@ def test_within_a_voxel_already_is_left_alone():
     fin = finish_surface(mesh_from_field(x**2 + y**2 + z**2 <= 20.0**2, grid), voxel_size=1.5)
     assert fin.deviation["max_voxels"] < 1.0
     assert not [s for s in fin.steps if s["step"] == "stay_on_data"]
+
+
+# ------------------------------------------------------------------ sub-voxel walls over tunnels (the slivers' cut)
+# What made the 0.25 mm sample's finished surface 1.29 voxels off (benchmarks/bench_finish.py): a 0.5 mm tunnel under a
+# wall 0.08-0.2 mm thin, with a 0.1 mm pocket in it, where the remesher's clean-up left four faces below 20 degrees;
+# the faces within one target edge of them (0.69 mm = 2.8 voxels) were cut out and filled over the tunnel, 2.1 voxels
+# off, and the last step brought back what it could.  Now the cut is the smallest (from the remesher's smallest edge)
+# whose result keeps the angle within a voxel of the raw surface.  The scene below was not used to choose that rule:
+# a ball with void tubes 0.6-1.6 voxels across under skins 0.05-0.35 voxel thick, each with a pocket in the skin, at
+# the sample's 0.25 mm proportions (target edge 3 voxels: 1 mm voxels, min_edge_mm=3).
+
+def _tunnels(seed):
+    """A 10 mm ball (1 mm voxels) with four void tubes 6 mm long just under its surface and a pocket in each skin."""
+    grid = VoxelGrid(origin=(-14.0,) * 3, voxel_size=1.0, shape=(29, 29, 29))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    rng = np.random.default_rng(seed)
+    d = np.sqrt(x**2 + y**2 + z**2) - 10.0
+    for _ in range(4):
+        a = rng.normal(size=3)
+        a /= np.linalg.norm(a)
+        u = np.cross(a, rng.normal(size=3))
+        u /= np.linalg.norm(u)
+        r, skin = rng.uniform(0.3, 0.8), rng.uniform(0.05, 0.35)
+        c = (10.0 - r - skin) * a
+        p = np.stack([x - c[0], y - c[1], z - c[2]], -1)
+        s = p @ u
+        d = np.maximum(d, np.minimum(r - np.sqrt(np.maximum((p**2).sum(-1) - s**2, 0.0)), 3.0 - np.abs(s)))
+        q = (10.0 - 0.5 * skin) * a + rng.uniform(-2.0, 2.0) * u
+        d = np.maximum(d, rng.uniform(0.15, 0.35) - np.sqrt((x - q[0]) ** 2 + (y - q[1]) ** 2 + (z - q[2]) ** 2))
+    return mesh_from_field(np.clip(0.5 - d, 0.0, 1.0).astype(np.float32), grid)
+
+
+# measured (seeds 2 and 4, the two of 0-11 where the remesher leaves faces below the angle): before, the cut of one
+# target edge (3 mm) filled the tunnels: 1.53 and 1.48 voxels off, +1.42 % and +1.40 % volume, the last step then
+# 0.65 / 0.67 voxel; now cuts of 0.35 mm (64 and 49 faces): 0.55 / 0.52 voxel, volume +0.000 %, 25.6 / 22.0 degrees,
+# no last step.  The bounds: under the promised voxel with a margin (0.8), the volume within 0.05 % (a filled tunnel
+# is 1.4 %)
+@pytest.mark.parametrize("seed", [2, 4])
+def test_a_thin_wall_over_a_tunnel_is_not_cut_away(seed):
+    raw = _tunnels(seed)
+    fin = finish_surface(raw, voxel_size=1.0, min_edge_mm=3.0)
+    cut = [s for s in fin.steps if s["step"] == "slivers"]
+    # the case is real: the remesher's clean-up left faces below the angle, and a cut smaller than the edge fixed them
+    assert len(cut) == 1 and 0 < cut[0]["faces_cut"] and cut[0]["cut_radius_mm"] < 3.0, fin.steps
+    assert fin.watertight and fin.final["min_angle_deg"] >= 20.0
+    dev = surface_deviation(fin.mesh, raw, voxel_size=1.0)
+    assert dev["max_voxels"] < 0.8 and dev["mean_voxels"] < 0.1, dev
+    assert abs(fin.volume_change_pct) < 0.05, fin.volume_change_pct
+
+
+def test_the_sliver_cut_keeps_the_pieces_it_does_not_touch():
+    """cut_and_fill repairs the pieces its cut touches only: a small separate piece elsewhere is no speck of the cut's
+    (the 1 mm dino: a piece 57 mm from the cut, under speck_mm after remeshing, was dropped, 3.1 voxels of raw lost)."""
+    from organlab.surface._repair import cut_and_fill
+
+    grid = VoxelGrid(origin=(-12.0,) * 3, voxel_size=1.0, shape=(25, 25, 25))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    d = np.minimum(np.sqrt(x**2 + y**2 + z**2) - 7.0, np.sqrt((x - 10.0) ** 2 + y**2 + z**2) - 0.8)
+    two = mesh_from_field(np.clip(0.5 - d, 0.0, 1.0).astype(np.float32), grid)  # a ball and a bead 1.6 mm across
+    bead = two.vertices[:, 0] > 8.5
+    assert 0 < bead.sum() < len(two.vertices) and np.linalg.norm(np.ptp(two.vertices[bead], axis=0)) < 3.0
+    out, n = cut_and_fill(two, np.array([[-7.0, 0.0, 0.0]]), 1.5, speck_mm=3.0)  # a cut on the far side of the ball
+    assert n > 0 and out.is_watertight
+    kept = out.vertices[:, 0] > 8.5
+    # the bead is all there, untouched (before: dropped with the cut's repair, 0 of its 6 vertices kept)
+    np.testing.assert_array_equal(np.sort(out.vertices[kept], axis=0), np.sort(two.vertices[bead], axis=0))
+    # and the cut was filled: the volume within 1 % (measured -0.26 %, the fill a chord across the curved ball)
+    assert abs(out.volume - two.volume) / two.volume < 0.01
