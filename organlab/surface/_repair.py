@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import OrganlabError
-from ._deviation import _SURFACES, _deviation_figures, _distances, _Surface, _surface
+from ._deviation import _SURFACES, _deviation_figures, _Surface, _surface
 from ._folds import fold_edges
 from ._guard import keep_on_data
 from ._mesh import Mesh
@@ -470,6 +470,23 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     return out, [rec] + recs
 
 
+def _both_ways(finished, raw, rs):
+    """``_deviation._distances(finished, raw, rs)``: the two directions side by side, ``raw``'s vertices to
+    ``finished`` (its centroid tree built, then queried) in a second thread while this one queries ``rs``.
+
+    The same calls, so the same distances; both release the GIL (the k-d tree's query, the nogil kernel).
+    The 1 mm sample: 31 403 and 28 864 points, about 0.05 and 0.04 s CPU, the last step of the viewer's
+    full update, when the AAA measures beside it are done and the second core is free.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, thread_name_prefix="organlab-deviation") as pool:
+        back = pool.submit(lambda: _Surface(finished).closest(raw.vertices)[1])
+        fv, ff = np.asarray(finished.vertices), np.asarray(finished.faces)
+        _, d_out, _ = rs.closest(np.concatenate([fv, fv[ff].mean(axis=1)]))
+        return d_out, back.result()
+
+
 def _release_heap():
     """Hand the C heap's free pages back to the system (glibc's ``malloc_trim``; nothing elsewhere).
 
@@ -597,7 +614,7 @@ def finish_surface(
             out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
             steps.append(rec)
     raw, final = mesh_quality(mesh), mesh_quality(out)
-    d_out, d_in = _distances(out, repaired, _surface(repaired))  # surface_deviation's, kept for the last step
+    d_out, d_in = _both_ways(out, repaired, _surface(repaired))  # surface_deviation's, kept for the last step
     deviation = _deviation_figures(d_out, d_in, float(voxel_size))
     if repair and remesh is not None and deviation["max_voxels"] >= 1.0 and not final["boundary_edges"]:
         # issue 21's promise (1 voxel at most): the raw points the finishing lost put back, see ._guard
