@@ -257,13 +257,14 @@ def _distance(inside, vs):
 def _centreline(inside, vs, smooth_mm, step_mm):
     from scipy import ndimage
 
-    lo = np.argwhere(inside).min(axis=0)
-    hi = np.argwhere(inside).max(axis=0) + 1
+    ijk = np.argwhere(inside)  # once (three passes over the box before): the box, then the voxels in it
+    lo = ijk.min(axis=0)
+    hi = ijk.max(axis=0) + 1
+    ijk -= lo  # np.argwhere(sub), the same order
     sub = inside[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     dist = _distance(sub, vs)
     cost = np.where(sub, 1.0 / np.maximum(dist, 1e-3) ** 2, np.inf)  # outside: never entered (nor explored)
     # main axis: the principal direction of the lumen, oriented so its largest component is positive
-    ijk = np.argwhere(sub)
     idx = ijk.astype(np.float64)
     _, v = np.linalg.eigh(np.cov((idx - idx.mean(axis=0)).T))
     axis = v[:, -1] * np.sign(v[np.argmax(np.abs(v[:, -1])), -1])
