@@ -1103,7 +1103,7 @@ class Engine:
         pool = aaa_job = None
         if measuring and settings.finish and grid.n_voxels <= _CONCURRENT_MEASURES_VOXELS:
             pool = ThreadPoolExecutor(1, thread_name_prefix="organlab-aaa")
-            aaa_job = pool.submit(measure_aaa, surface_of, grid)
+            aaa_job = pool.submit(_measure_beside, surface_of, grid)
             pool.shutdown(wait=False)  # its thread ends with the job; a cancelled run does not wait for it
         if settings.finish:
             footprint = pixel_footprint(cameras, grid)
@@ -1376,6 +1376,15 @@ class LiveHull:
 
         return cls(VoxelGrid.from_session(s, voxel_size), tolerance=tolerance, silhouette=find,
                    camera0=cal.turntable.camera)
+
+
+def _measure_beside(volume, grid):
+    """:func:`measure_aaa` in the thread beside the finishing, its numba kernels on that thread alone (numba's
+    thread count is per thread): a parallel kernel's second thread took the core the finishing was on."""
+    import numba
+
+    numba.set_num_threads(1)
+    return measure_aaa(volume, grid)
 
 
 def _cameras(out):

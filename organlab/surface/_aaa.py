@@ -95,16 +95,20 @@ def _largest_component(mask):
     return lab == np.argmax(sizes)
 
 
-def _end_point(shape, idx, s, top, slab):
+def _end_point(idx, s, top, slab):
     """Index of the inside voxel nearest the centroid of the largest component of the end slab.
 
     ``idx`` (N, 3) int are the inside voxels (C order), ``s`` (N,) their coordinate along the main axis.
     """
     near = (s >= s.max() - slab) if top else (s <= s.min() + slab)
-    sel = np.zeros(shape, dtype=bool)  # the slab only: no whole-box coordinate arrays
-    sel[tuple(idx[near].T)] = True
+    pts = idx[near]
+    # the slab's bounding box only (labelling the whole box twice was 10 ms of 0.3 s at 1 mm): the same parts,
+    # scanned in the same order (so the same largest one on a tie), their voxels offset back before any sum
+    lo = pts.min(axis=0)
+    sel = np.zeros(tuple(pts.max(axis=0) + 1 - lo), dtype=bool)
+    sel[tuple((pts - lo).T)] = True
     sel = _largest_component(sel)
-    idx = np.argwhere(sel)
+    idx = np.argwhere(sel) + lo
     c = idx.mean(axis=0)
     return tuple(idx[np.argmin(((idx - c) ** 2).sum(axis=1))])
 
@@ -253,21 +257,22 @@ def _distance(inside, vs):
 def _centreline(inside, vs, smooth_mm, step_mm):
     from scipy import ndimage
 
-    lo = np.argwhere(inside).min(axis=0)
-    hi = np.argwhere(inside).max(axis=0) + 1
+    ijk = np.argwhere(inside)  # once (three passes over the box before): the box, then the voxels in it
+    lo = ijk.min(axis=0)
+    hi = ijk.max(axis=0) + 1
+    ijk -= lo  # np.argwhere(sub), the same order
     sub = inside[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
     dist = _distance(sub, vs)
     cost = np.where(sub, 1.0 / np.maximum(dist, 1e-3) ** 2, np.inf)  # outside: never entered (nor explored)
     # main axis: the principal direction of the lumen, oriented so its largest component is positive
-    ijk = np.argwhere(sub)
     idx = ijk.astype(np.float64)
     _, v = np.linalg.eigh(np.cov((idx - idx.mean(axis=0)).T))
     axis = v[:, -1] * np.sign(v[np.argmax(np.abs(v[:, -1])), -1])
     s = idx @ axis  # the inside voxels' coordinate along the axis (voxels)
     del idx
     slab = 3.0
-    a = _end_point(sub.shape, ijk, s, True, slab)
-    b = _end_point(sub.shape, ijk, s, False, slab)
+    a = _end_point(ijk, s, True, slab)
+    b = _end_point(ijk, s, False, slab)
     del ijk, s
     path = _route(cost, a, b)
     p = (np.asarray(path, dtype=np.float64) + lo) * vs

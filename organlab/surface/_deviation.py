@@ -66,7 +66,7 @@ def _tri_closest(p, a, b, c):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _closest_kernel(points, v, f, cand, best, dist, face):
     """For each point, the closest point over its candidate triangles (Ericson's regions, one at a time)."""
     for i in range(points.shape[0]):

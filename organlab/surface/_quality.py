@@ -49,7 +49,7 @@ def _face_figures(mesh):
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0))), np.where(area > 0, r, np.inf), area
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _face_kernel(v, f, cmax, ratio, area):
     """Per face: the largest cosine of its angles, its aspect ratio and its area.
 

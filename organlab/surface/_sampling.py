@@ -51,13 +51,13 @@ def _trilinear(states, index, values, B, nx, ny, nz, x, y, z, cval):
 
 # threads pay from about 10^5 points: a section's 10^3-10^4 took 35 ms on two threads of a busy
 # machine against 0.06 ms on one (1 mm sample)
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _sample_band(states, index, values, B, nx, ny, nz, ijk, cval, out):
     for p in prange(ijk.shape[0]):
         out[p] = _trilinear(states, index, values, B, nx, ny, nz, ijk[p, 0], ijk[p, 1], ijk[p, 2], cval)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sample_band_serial(states, index, values, B, nx, ny, nz, ijk, cval, out):
     for p in range(ijk.shape[0]):
         out[p] = _trilinear(states, index, values, B, nx, ny, nz, ijk[p, 0], ijk[p, 1], ijk[p, 2], cval)
@@ -66,7 +66,7 @@ def _sample_band_serial(states, index, values, B, nx, ny, nz, ijk, cval, out):
 _PARALLEL_FROM = 100_000
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def _above_band(states, index, values, B, nx, ny, nz, base, step, level, cval, out):
     """``out[a, b, c] = trilinear(base + step * (a, b, c)) > level`` (as :func:`_sample_band`), a point
     whose 8 neighbours lie in one inside or outside block taken at that block's value: its samples are
