@@ -44,14 +44,14 @@ def _sub(V, a, b):
     return V[a, 0] - V[b, 0], V[a, 1] - V[b, 1], V[a, 2] - V[b, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _normal(p0, p1, p2):
     ux, uy, uz = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
     vx, vy, vz = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
     return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cos3(ax, ay, az, bx, by, bz, cx, cy, cz):
     """Cosine of the angle at ``a`` of triangle ``abc`` (1.0 when an edge is degenerate)."""
     ux, uy, uz = bx - ax, by - ay, bz - az
@@ -62,7 +62,7 @@ def _cos3(ax, ay, az, bx, by, bz, cx, cy, cz):
     return (ux * vx + uy * vy + uz * vz) / math.sqrt(d)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _max_cos(V, a, b, c):
     """The largest cosine of triangle ``abc``'s angles (that of its smallest angle)."""
     ax, ay, az = V[a, 0], V[a, 1], V[a, 2]
@@ -72,7 +72,7 @@ def _max_cos(V, a, b, c):
                _cos3(cx, cy, cz, ax, ay, az, bx, by, bz))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stars(F, alive, nf, nv):
     """Vertex -> faces (CSR) of the alive faces."""
     cnt = np.zeros(nv + 1, dtype=np.int64)
@@ -93,7 +93,7 @@ def _stars(F, alive, nf, nv):
     return cnt, lst
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _other_face(F, alive, lock, start, lst, f, a, b):
     """The unlocked face holding the directed edge ``b -> a`` (the twin of ``f``'s ``a -> b``), or -1."""
     for k in range(start[a], start[a + 1]):
@@ -106,7 +106,7 @@ def _other_face(F, alive, lock, start, lst, f, a, b):
     return -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _third(F, q, a, b):
     for j in range(3):
         v = F[q, j]
@@ -115,7 +115,7 @@ def _third(F, q, a, b):
     return -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _star_free(lock, start, lst, v):
     for k in range(start[v], start[v + 1]):
         if lock[lst[k]]:
@@ -123,7 +123,7 @@ def _star_free(lock, start, lst, v):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _segments_apart(V, a, b, c, d):
     """Distance between segments ``ab`` and ``cd`` (sampled: 9 points of ``cd`` against ``ab``)."""
     ux, uy, uz = _sub(V, b, a)
@@ -143,7 +143,7 @@ def _segments_apart(V, a, b, c, d):
 # ------------------------------------------------------------------ the three local operations
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _split_long(V, F, H, alive, lock, nv, nf, hi, todo, keep):
     """Split every edge longer than ``hi`` times its target (the longest of a face first).
 
@@ -188,7 +188,7 @@ def _split_long(V, F, H, alive, lock, nv, nf, hi, todo, keep):
     return nv, nf, False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, force, todo, keep):
     """Collapse every edge shorter than ``lo`` times its target into its midpoint, where that is safe.
 
@@ -314,7 +314,7 @@ def _collapse_short(V, F, H, alive, valive, lock, nv, nf, lo, hi, cos_turn, forc
     return done
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _flip_edges(V, F, alive, lock, nv, nf, cos_fold, gain, cos_good, tol, todo, keep):
     """Flip an edge to the other diagonal of its two faces where the smallest angle grows by ``gain``.
 
@@ -401,19 +401,53 @@ def _compact(V, F, H, alive, valive, nv, nf):
 
 
 def _vertex_normals(V, F):
-    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    out = np.stack([sum(np.bincount(F[:, i], n[:, k], len(V)) for i in range(3)) for k in range(3)], axis=1)
-    return out / (np.linalg.norm(out, axis=1, keepdims=True) + 1e-300)
+    nrm = np.empty((len(V), 3))
+    _star_sums(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64), nrm, None)
+    return nrm
 
 
 def _neighbour_mean(V, F):
     """Each vertex's mean over its faces' centroids weighted by their areas."""
-    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    area = np.linalg.norm(n, axis=1)
-    c = V[F].mean(axis=1) * area[:, None]
-    acc = np.stack([sum(np.bincount(F[:, i], c[:, k], len(V)) for i in range(3)) for k in range(3)], axis=1)
-    w = sum(np.bincount(F[:, i], area, len(V)) for i in range(3))
-    return acc / np.maximum(w, 1e-300)[:, None]
+    mean = np.empty((len(V), 3))
+    _star_sums(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64), None, mean)
+    return mean
+
+
+@njit(cache=True, nogil=True)
+def _star_sums(V, F, nrm, mean):
+    nv = V.shape[0]
+    acc_n = np.zeros((3, nv, 3))
+    acc_c = np.zeros((3, nv, 3))
+    acc_w = np.zeros((3, nv))
+    for t in range(F.shape[0]):
+        a, b, c = F[t, 0], F[t, 1], F[t, 2]
+        e1x, e1y, e1z = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
+        e2x, e2y, e2z = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        area = np.sqrt(nx * nx + ny * ny + nz * nz)
+        for i in range(3):
+            v = F[t, i]
+            acc_n[i, v, 0] += nx
+            acc_n[i, v, 1] += ny
+            acc_n[i, v, 2] += nz
+            acc_w[i, v] += area
+        for k in range(3):
+            m = (V[a, k] + V[b, k] + V[c, k]) / 3.0 * area
+            for i in range(3):
+                acc_c[i, F[t, i], k] += m
+    for v in range(nv):
+        if nrm is not None:
+            for k in range(3):
+                nrm[v, k] = ((0.0 + acc_n[0, v, k]) + acc_n[1, v, k]) + acc_n[2, v, k]
+            ln = np.sqrt(nrm[v, 0] ** 2 + nrm[v, 1] ** 2 + nrm[v, 2] ** 2) + 1e-300
+            for k in range(3):
+                nrm[v, k] /= ln
+        if mean is not None:
+            w = max(((0.0 + acc_w[0, v]) + acc_w[1, v]) + acc_w[2, v], 1e-300)
+            for k in range(3):
+                mean[v, k] = (((0.0 + acc_c[0, v, k]) + acc_c[1, v, k]) + acc_c[2, v, k]) / w
 
 
 def sizing_field(mesh: Mesh, *, max_mm: float, min_mm: float, tol_mm: float, grade: float = 0.5) -> np.ndarray:
@@ -437,7 +471,7 @@ def sizing_field(mesh: Mesh, *, max_mm: float, min_mm: float, tol_mm: float, gra
     return h
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _edge_curvature(V, n, e, short2, kv, ln):
     """Each edge's length into ``ln`` and, at both its ends, the largest ``|n_b - n_a| / |b - a|`` into ``kv``
     (edges whose squared length is not above ``short2`` count 0).
@@ -460,7 +494,7 @@ def _edge_curvature(V, n, e, short2, kv, ln):
             kv[b] = k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _grade(h, e, ln, grade):
     """``h[a] <= h[b] + grade * |ab|`` over every edge, by sweeps until nothing changes (in place)."""
     for _ in range(200):
@@ -659,7 +693,7 @@ def _face_min_angles(V, F):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _min_angles(V, F, out):
     for f in range(F.shape[0]):
         out[f] = math.degrees(math.acos(max(-1.0, min(1.0, _max_cos(V, F[f, 0], F[f, 1], F[f, 2])))))
