@@ -337,8 +337,7 @@ class Problem:
         """
         m = self.model
         K = m.n_params
-        h = np.full(K, 1e-4)  # degrees or mm
-        h[: min(3, m.n_shared)] = 1e-6  # rad for the camera's rotation
+        h = _steps(m)
         X = np.asarray(x, np.float64) + np.concatenate([np.diag(h), -np.diag(h)])
         R, t = m.poses(X)  # (2K, n, 3, 3), (2K, n, 3)
         R0, _ = m.poses(x)
@@ -372,12 +371,11 @@ class Problem:
         p0 = m.prior(x)
         Jm = np.zeros((2 * P + len(p0), m.n_params))
         Jm[: 2 * P] = (dpsi * (self.scale[:, None] * self.keep * wv[:, None] / SIGMA_PX)[..., None]).reshape(2 * P, -1)
-        ns = m.n_shared
+        h = _steps(m)
         for k in range(m.n_params):
-            h = 1e-6 if (ns and k < 3) else 1e-4
             xk = x.copy()
-            xk[k] += h
-            Jm[2 * P :, k] = (m.prior(xk) - p0) / h
+            xk[k] += h[k]
+            Jm[2 * P :, k] = (m.prior(xk) - p0) / h[k]
         return Jm
 
     def fit(self, x0, *, weights=None, max_iter=30, trend_first=False):
@@ -408,6 +406,14 @@ class Problem:
             if len(sel):
                 out[v] = float(np.sqrt(np.mean(r[sel] ** 2)))
         return out
+
+
+def _steps(model):
+    """The finite-difference step of each parameter, ``(n_params,)``: 1e-6 rad for the camera's rotation, 1e-4
+    (degrees or mm) for the others."""
+    h = np.full(model.n_params, 1e-4)
+    h[: min(3, model.n_shared)] = 1e-6
+    return h
 
 
 def _soft_l1(r, f):

@@ -201,14 +201,32 @@ def surface_deviation(finished: Mesh, raw: Mesh, *, voxel_size: float, raw_surfa
     return _deviation_figures(*_distances(finished, raw, rs), voxel_size)
 
 
+#: :func:`_distances` runs its two directions side by side for raw surfaces up to this many vertices (the sample
+#: at 1 mm: 28 864), one after the other above (0.25 mm: 930 k, where their arrays would add to the peak).
+_SIDE_BY_SIDE = 200_000
+
+
 def _distances(finished, raw, rs):
     """``(d_out, d_in)``, mm: ``finished``'s vertices then face centres to ``raw`` (prepared as ``rs``), and
-    ``raw``'s vertices to ``finished`` (:func:`surface_deviation`'s figures come from these)."""
+    ``raw``'s vertices to ``finished`` (:func:`surface_deviation`'s figures come from these).
+
+    Up to :data:`_SIDE_BY_SIDE` raw vertices the second direction (``finished``'s tree built, then queried) runs
+    in a second thread while this one queries ``rs``: the same calls, so the same distances; both release the GIL
+    (the k-d tree's query, the nogil kernel).  The 1 mm sample: 31 403 and 28 864 points, about 0.05 and 0.04 s
+    CPU, the last step of the viewer's full update, when the AAA measures beside it are done.
+    """
     fv, ff = np.asarray(finished.vertices), np.asarray(finished.faces)
     pts = np.concatenate([fv, fv[ff].mean(axis=1)])
-    _, d_out, _ = rs.closest(pts)
-    _, d_in, _ = _Surface(finished).closest(raw.vertices)
-    return d_out, d_in
+    if len(raw.vertices) > _SIDE_BY_SIDE:
+        _, d_out, _ = rs.closest(pts)
+        _, d_in, _ = _Surface(finished).closest(raw.vertices)
+        return d_out, d_in
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, thread_name_prefix="organlab-deviation") as pool:
+        back = pool.submit(lambda: _Surface(finished).closest(raw.vertices)[1])
+        _, d_out, _ = rs.closest(pts)
+        return d_out, back.result()
 
 
 def _deviation_figures(d_out, d_in, voxel_size):

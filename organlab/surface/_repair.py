@@ -202,19 +202,24 @@ def _fan_loops(mesh):
     return Mesh(mesh.vertices, np.concatenate([f, np.asarray(new, dtype=np.int64).reshape(-1, 3)]))
 
 
+def _pieces(f, nv):
+    """``(n, label (nv,))``: the connected pieces of faces ``f`` ``(F, 3)`` int64 over ``nv`` vertices (by edges)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    return connected_components(coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())),
+                                           shape=(nv, nv)), directed=False)
+
+
 def _drop_specks(mesh, speck_mm):
     """The mesh without the connected pieces whose bounding-box diagonal is below ``speck_mm``; None if none is left.
 
     As pymeshlab's ``meshing_remove_connected_component_by_diameter`` on an edge-manifold mesh
     (pieces connected by edges; the vertices of the pieces left are renumbered in order).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
     nv = len(v)
-    g = coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())), shape=(nv, nv))
-    n, lab = connected_components(g, directed=False)
+    n, lab = _pieces(f, nv)
     lo = np.full((n, 3), np.inf)
     hi = np.full((n, 3), -np.inf)
     np.minimum.at(lo, lab, v)
@@ -485,30 +490,6 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     return out, [rec] + recs
 
 
-#: :func:`_both_ways` runs its two queries side by side for raw surfaces up to this many vertices (the sample
-#: at 1 mm: 28 864), one after the other above (0.25 mm: 930 k, where their arrays would add to the peak).
-_SIDE_BY_SIDE = 200_000
-
-
-def _both_ways(finished, raw, rs):
-    """``_deviation._distances(finished, raw, rs)``: the two directions side by side, ``raw``'s vertices to
-    ``finished`` (its centroid tree built, then queried) in a second thread while this one queries ``rs``.
-
-    The same calls, so the same distances; both release the GIL (the k-d tree's query, the nogil kernel).
-    The 1 mm sample: 31 403 and 28 864 points, about 0.05 and 0.04 s CPU, the last step of the viewer's
-    full update, when the AAA measures beside it are done and the second core is free.
-    """
-    from concurrent.futures import ThreadPoolExecutor
-
-    if len(raw.vertices) > _SIDE_BY_SIDE:
-        return _distances(finished, raw, rs)
-    with ThreadPoolExecutor(1, thread_name_prefix="organlab-deviation") as pool:
-        back = pool.submit(lambda: _Surface(finished).closest(raw.vertices)[1])
-        fv, ff = np.asarray(finished.vertices), np.asarray(finished.faces)
-        _, d_out, _ = rs.closest(np.concatenate([fv, fv[ff].mean(axis=1)]))
-        return d_out, back.result()
-
-
 #: Finishing surfaces of at least this many raw faces hands the heap's free pages back (:func:`_release_heap`):
 #: the sample at 0.5 mm and finer (the faces grow at least 4x per halving from 57 724 at 1 mm).  Below, it frees
 #: tens of MB, and the trim cost the viewer's 1 mm update 3-11 ms CPU, 10-38 ms wall (a loaded machine).
@@ -642,7 +623,7 @@ def finish_surface(
             out, rec = repair_mesh(out, speck_mm=3.0 * voxel_size)
             steps.append(rec)
     raw, final = mesh_quality(mesh), mesh_quality(out)
-    d_out, d_in = _both_ways(out, repaired, _surface(repaired))  # surface_deviation's, kept for the last step
+    d_out, d_in = _distances(out, repaired, _surface(repaired))  # surface_deviation's, kept for the last step
     deviation = _deviation_figures(d_out, d_in, float(voxel_size))
     if repair and remesh is not None and deviation["max_voxels"] >= 1.0 and not final["boundary_edges"]:
         # issue 21's promise (1 voxel at most): the raw points the finishing lost put back, see ._guard
@@ -744,8 +725,6 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     int
         Faces removed (0 when ``mesh`` is returned).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     tree = cKDTree(seeds)
@@ -754,8 +733,7 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     # only the pieces the cut touches are repaired: the others are not its specks (1 mm dino: a separate piece 57 mm
     # from the cut, under speck_mm after remeshing, was dropped, 3.1 voxels of raw surface lost)
     f, nv = np.asarray(mesh.faces, dtype=np.int64), len(mesh.vertices)
-    piece = connected_components(coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())),
-                                            shape=(nv, nv)), directed=False)[1][f[:, 0]]
+    piece = _pieces(f, nv)[1][f[:, 0]]
     touched = np.isin(piece, piece[~keep])
     rep, _ = repair_mesh(Mesh(mesh.vertices, f[keep & touched]), speck_mm=speck_mm)
     if not touched.all():
