@@ -21,9 +21,9 @@ from organlab.synthetic import AAAPhantom, BranchedAAA, make_specimen
 #: 24 views 480 x 360 0.324 / 1.869; 320 x 240 (24 or 36 views) refused by the gate (left-out views 0.141 -> 0.105 px,
 #: 0.036 px < the 0.05 px gain needed)
 SCENE = dict(image_size=(480, 360), n_views=36)
-#: measured 0.168 degrees (1.54 before; 0.211 with the former prior)
+#: measured 0.139 degrees (1.54 before; 0.168 with the outline's 0.5-crossing points; 0.211 with the former prior)
 MEDIAN_DEG = 0.3
-#: measured 0.852 degrees (3.38 before; 0.836 with the former prior): a view's own tangents pin its angle to 0.17-0.27
+#: measured 0.844 degrees (3.38 before; 0.852 with the 0.5-crossing points; 0.836 with the former prior): a view's own tangents pin its angle to 0.17-0.27
 #: degrees RMS at 640 x 480 (docs/trust.md), about as much as the 0.3 degrees of jitter, and less at 480 x 360
 MAX_DEG = 1.0
 #: 2 mm hull (refined cameras) against the exact volume: measured -0.95 % (true cameras' hull -0.93 %: the
@@ -116,8 +116,8 @@ def test_drifting_table_on_a_branched_aaa_is_corrected(tmp_path):
     e1 = np.abs((used - true + 180.0) % 360.0 - 180.0)
     assert np.median(e1) <= MEDIAN_DEG and e1.max() <= MAX_DEG, (np.median(e1), e1.max())
     # each view's angle sd (relative to view 0, from the fit's normal equations) against its error relative to
-    # view 0: errors / sd RMS measured 0.98-1.17 on six 640 x 480 drifts (docs/trust.md, session 7), here 1.27
-    # (largest 3.02 sd, view 2; sd median 0.24 degrees, 0.18-0.36): the bound fails when the sd is off by 2x
+    # view 0: errors / sd RMS measured 0.98-1.17 on six 640 x 480 drifts (docs/trust.md, session 7), here 1.04
+    # (1.27 with the outline's 0.5-crossing points; sd median 0.24 degrees): the bound fails when the sd is off by 2x
     sd = r.angle_sd_deg
     rel = (used - true + 180.0) % 360.0 - 180.0
     z = (rel[1:] - rel[0]) / sd[1:]
@@ -189,3 +189,35 @@ def test_plate_rim_offsets_do_not_see_a_turn_about_the_axis():
     out /= np.linalg.norm(out, axis=1, keepdims=True)
     oblique = Rim(th, p + 0.3 * out, out, radius, 0.0)
     assert np.abs(oblique.residuals(turned) - 0.3).max() > 0.1
+
+
+def _disc_coverage(shape, centre, radius, ss=64):
+    """Area coverage of a disc, ``(H, W)``, from ``ss x ss`` samples per pixel (position error ~1 / (2 ss^2) px)."""
+    h, w = shape
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    ys, xs = (np.arange(h)[:, None] + o).ravel(), (np.arange(w)[:, None] + o).ravel()
+    inside = (ys[:, None] - centre[1]) ** 2 + (xs[None, :] - centre[0]) ** 2 < radius**2
+    return inside.reshape(h, ss, w, ss).mean(axis=(1, 3))
+
+
+@pytest.mark.parametrize("centre", [(20.3, 19.71), (20.0, 20.0), (19.55, 20.42)])
+def test_outline_points_from_the_profile_across_the_edge(centre, monkeypatch):
+    """The tangents' outline points (``_tangents._profile_points``) where the coverage summed across the edge puts
+    them, on a disc's exact area coverage: the hull's points lie on the disc's circle.  Measured: largest
+    distance from it 0.010-0.014 px (RMS 0.005; the circle's curvature, a straight edge assumed); with the linear
+    0.5-crossing instead 0.079-0.091 px (RMS 0.044-0.052): the bound fails if the profile is summed off by a pixel,
+    or taken on the wrong side of the edge, or not used."""
+    from organlab.poses import _tangents
+    from organlab.poses._refine import _Intrinsics
+
+    radius = 12.37
+    cov = _disc_coverage((40, 40), centre, radius)
+    cam = _Intrinsics(np.eye(3), np.zeros(5))  # normalised coordinates = pixels
+    default = _tangents.PROFILE_HALF_PX
+    far = {}
+    for half in (0, default):
+        monkeypatch.setattr(_tangents, "PROFILE_HALF_PX", half)
+        rays, _ = _tangents.outline_rays(cov, cam)
+        far[half] = np.abs(np.hypot(rays[:, 0] - centre[0], rays[:, 1] - centre[1]) - radius).max()
+    assert default >= 2
+    assert far[default] < 0.025 and far[0] > 0.06, far
