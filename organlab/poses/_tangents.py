@@ -66,7 +66,7 @@ def outline_rays(coverage, camera, *, level=0.5, border_px=1.5):
     yd = (pts[:, 1] - cy) / fy
     xd = (pts[:, 0] - cx - skew * yd) / fx
     # organlab.camera.undistort compiled (bit for bit; its numpy steps were 0.6 ms a view)
-    xn = undistort_points(np.stack([xd, yd], axis=1), np.asarray(camera.dist, dtype=np.float64))
+    xn = undistort_points(np.stack([xd, yd], axis=1), np.ascontiguousarray(camera.dist, dtype=np.float64))
     hull = cv2.convexHull(xn.astype(np.float32), returnPoints=False).ravel()
     # float32 hull indices, exact float64 points
     sel = np.unique(hull)
