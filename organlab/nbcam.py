@@ -81,7 +81,7 @@ def undistort_points(xd, dist, iterations=30):
     """:func:`organlab.camera.undistort`, compiled: the same Newton steps, term for term, on every point together.
 
     Each step moves every point, and the steps stop once the largest residual of the step (NaN left out) is below
-    1e-14, as there: the same result bit for bit (tests/test_poses_check.py), some 20x faster on the poses
+    1e-14, as there: the same result bit for bit (tests/test_nbcam_undistort.py), some 13x faster on the poses
     check's outlines (700 points a view).
 
     Parameters
