@@ -85,7 +85,8 @@ class Pieces:
 
     The engine's stage functions (as the engine module calls them) and the scene's sends are wrapped;
     ``time.thread_time`` counts the calling thread only (numba's and the silhouettes' worker threads are
-    in the process CPU the bench prints, not here).
+    in the process CPU the bench prints, not here); each piece's start, s after the slider move (``t0``), shows
+    what ran beside what.
     """
 
     ENGINE = ("refine_poses", "hull_field", "carve", "mesh_from_field", "finish_surface", "measure_aaa",
@@ -97,6 +98,7 @@ class Pieces:
         from organlab.viewer._live import LiveView
 
         self.rows = []
+        self.t0 = time.perf_counter()  # the slider move (set by the caller)
         self._undo = []
         for owner, names in ((engine, self.ENGINE), (LiveView, self.SCENE)):
             for name in names:
@@ -114,7 +116,7 @@ class Pieces:
                 return f(*a, **k)
             finally:
                 self.rows.append((name, time.perf_counter() - t0, time.thread_time() - c0,
-                                  threading.current_thread().name))
+                                  threading.current_thread().name, t0 - self.t0))
 
         setattr(owner, name, timed)
         self._undo.append((owner, name, f))
@@ -125,9 +127,9 @@ class Pieces:
 
     def line(self, rows):
         out = []
-        for name, wall, cpu, thread in rows:
+        for name, wall, cpu, thread, start in rows:
             where = "" if thread.startswith("organlab-viewer") else f" [{thread.split('_')[0]}]"
-            out.append(f"{name} {wall:.3f}/{cpu:.3f}{where}")
+            out.append(f"{name} {wall:.3f}/{cpu:.3f} @{start:.2f}{where}")
         return ", ".join(out)
 
 
@@ -150,7 +152,7 @@ def bench_slider(session, sizes, repeat):
             pieces.rows = []
             b0 = probe.bytes
             c0 = time.process_time()
-            t0 = time.perf_counter()
+            t0 = pieces.t0 = time.perf_counter()
             g = app.rerun(threshold=18.0 + 0.5 * k + 0.25)
             app.wait(g)
             last = probe.quiet()
@@ -183,8 +185,8 @@ def bench_slider(session, sizes, repeat):
         print("   first run: " + ", ".join(f"{k} {v:.3f} s" for k, v in first_timings.items()))
         print("   last run: " + ", ".join(f"{k} {v:.3f} s" for k, v in r.timings.items()))
         best = int(np.argmin(full))
-        print(f"   pieces of the fastest full update ({full[best]:.3f} s; wall/thread-CPU s, in the viewer's worker "
-              f"unless [thread]): " + pieces.line(rows[best]))
+        print(f"   pieces of the fastest full update ({full[best]:.3f} s; wall/thread-CPU s @start s, in the "
+              f"viewer's worker unless [thread]): " + pieces.line(rows[best]))
         probe.close()
         app.stop()
 

@@ -1,4 +1,5 @@
-"""Numba kernels of the camera model (ground floor): :meth:`organlab.camera.Camera.project` for one point.
+"""Numba kernels of the camera model (ground floor): :meth:`organlab.camera.Camera.project` for one point,
+:func:`organlab.camera.undistort` for many.
 
 The voxel kernels (:mod:`organlab.carving`, :mod:`organlab.coloring`) project
 millions of points one at a time inside numba loops; they share the camera
@@ -73,6 +74,72 @@ def to_pixel(cp, xn, yn):
     xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
     yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
     return cp[12] * xd + cp[13] * yd + cp[14], cp[15] * yd + cp[16]
+
+
+@njit(cache=True, nogil=True)
+def undistort_points(xd, dist, iterations=30):
+    """:func:`organlab.camera.undistort`, compiled: the same Newton steps, term for term, on every point together.
+
+    Each step moves every point, and the steps stop once the largest residual of the step (NaN left out) is below
+    1e-14, as there: the same result bit for bit (tests/test_nbcam_undistort.py), some 13x faster on the poses
+    check's outlines (700 points a view).
+
+    Parameters
+    ----------
+    xd : (N, 2) float64
+        Distorted normalized coordinates.
+    dist : (5,) float64
+        ``[k1, k2, p1, p2, k3]``.
+    iterations : int
+        Maximum number of Newton steps.
+
+    Returns
+    -------
+    xn : (N, 2) float64
+        Undistorted normalized coordinates (a new array).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from organlab.camera import undistort
+    >>> xd = np.random.default_rng(0).uniform(-0.4, 0.4, (50, 2))
+    >>> dist = np.array([-0.3, 0.1, 0.0012, -0.0008, 0.0])
+    >>> bool((undistort_points(xd, dist) == undistort(xd, dist)).all())
+    True
+    """
+    n = xd.shape[0]
+    xn = xd.copy()
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    if k1 == 0.0 and k2 == 0.0 and p1 == 0.0 and p2 == 0.0 and k3 == 0.0:
+        return xn
+    for _ in range(iterations):
+        worst = 0.0
+        for i in range(n):
+            x, y = xn[i, 0], xn[i, 1]
+            # organlab.camera.distort
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            res0 = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)) - xd[i, 0]
+            res1 = (y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y) - xd[i, 1]
+            # organlab.camera._distort_jacobian
+            drad_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            a = radial + x * drad_dr2 * 2 * x + 2 * p1 * y + p2 * (2 * x + 4 * x)
+            b = x * drad_dr2 * 2 * y + 2 * p1 * x + p2 * 2 * y
+            c = y * drad_dr2 * 2 * x + p1 * 2 * x + 2 * p2 * y
+            d = radial + y * drad_dr2 * 2 * y + p1 * (2 * y + 4 * y) + 2 * p2 * x
+            det = a * d - b * c
+            if abs(det) < 1e-12:
+                det = 1e-12
+            xn[i, 0] = x - (d * res0 - b * res1) / det
+            xn[i, 1] = y - (-c * res0 + a * res1) / det
+            e0, e1 = abs(res0), abs(res1)
+            if e0 > worst:  # NaN compares False: left out, as np.nanmax
+                worst = e0
+            if e1 > worst:
+                worst = e1
+        if worst < 1e-14:
+            break
+    return xn
 
 
 class CompileWatch(_numba_event.Listener):

@@ -6,6 +6,10 @@ vertices, straight edges between them): the agreement check compares it
 with the silhouettes, the automatic colour threshold with the hull's, the
 tests with the photographs' masks.  :func:`fill_triangles` and
 :func:`voxel_boundary_quads` are its two steps.
+
+:func:`iso_contours` goes the other way, from an image to its outlines: the sub-pixel
+contours of a level (marching squares, compiled), for the poses check's silhouette
+outlines and the AAA measures' cross-sections.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from .camera import Camera
 from .grid import VoxelGrid
 from .nbcam import pack_camera, to_camera, to_pixel
 
-__all__ = ["model_mask", "MeshRaster", "fill_triangles", "voxel_boundary_quads"]
+__all__ = ["model_mask", "MeshRaster", "fill_triangles", "voxel_boundary_quads", "iso_contours"]
 
 
 @njit(cache=True, nogil=True)
@@ -229,3 +233,230 @@ def model_mask(model: Any, camera: Camera, shape: tuple[int, int] | None = None,
         uv, z = camera.project(verts, return_depth=True)
     front = np.all(z[faces] > 0, axis=1)
     return fill_triangles(uv, faces[front], shape)
+
+
+@njit(nogil=True)
+def _slot(keys, state, r, c):
+    """Slot of point ``(r, c)`` in an open-addressing table (``state`` 1 used, 2 deleted, 0 empty), or -1."""
+    mask = len(state) - 1
+    h = (np.int64(r * 1024.0) * 1000003 + np.int64(c * 1024.0)) & mask
+    while state[h] != 0:
+        if state[h] == 1 and keys[h, 0] == r and keys[h, 1] == c:
+            return h
+        h = (h + 1) & mask
+    return -1
+
+
+@njit(nogil=True)
+def _pop(keys, vals, state, r, c):
+    """Remove point ``(r, c)``; returns its value, -1 when absent (``dict.pop(p, -1)``)."""
+    h = _slot(keys, state, r, c)
+    if h < 0:
+        return -1
+    state[h] = 2
+    return vals[h]
+
+
+@njit(nogil=True)
+def _put(keys, vals, state, r, c, v):
+    """``d[(r, c)] = v``."""
+    h = _slot(keys, state, r, c)
+    if h < 0:
+        mask = len(state) - 1
+        h = (np.int64(r * 1024.0) * 1000003 + np.int64(c * 1024.0)) & mask
+        while state[h] == 1:
+            h = (h + 1) & mask
+        keys[h, 0], keys[h, 1], state[h] = r, c, 1
+    vals[h] = v
+
+
+@njit(cache=True, nogil=True)
+def _iso_contours(img, level):
+    """The ``level`` contours of ``img`` (R, C) float64: ``skimage.measure.find_contours(img, level)``, compiled.
+
+    Returns ``pts`` (N, 2) float64 (row, column) and ``offs`` (K + 1,) int64: contour ``k`` is
+    ``pts[offs[k]:offs[k + 1]]``.  Marching squares over the squares in C order, then its segments
+    joined as skimage's ``_assemble_contours`` joins them (the same dict semantics, points keyed
+    by their coordinates in open-addressing tables, its deques as linked lists; no numba typed
+    dict: loading one cost 0.7 s on the first call): the same contours, points, order and
+    starting points (checked against skimage 0.26 on 3000 random, smooth and integer images, exact-level
+    vertices included; tests/test_raster_contours.py).  skimage's Python joining was 40 % of the AAA measures
+    and, with its marching squares, 2.4 ms a view of the poses check's outlines.
+    """
+    nr, nc = img.shape
+    cap = 16
+    sx = np.empty((cap, 2, 2))
+    ns = 0
+    for r0 in range(nr - 1):
+        for c0 in range(nc - 1):
+            ul, ur, ll, lr = img[r0, c0], img[r0, c0 + 1], img[r0 + 1, c0], img[r0 + 1, c0 + 1]
+            if np.isnan(ul) or np.isnan(ur) or np.isnan(ll) or np.isnan(lr):
+                continue
+            case = (ul > level) * 1 + (ur > level) * 2 + (ll > level) * 4 + (lr > level) * 8
+            if case == 0 or case == 15:
+                continue
+            if ns + 2 > cap:
+                cap *= 2
+                grown = np.empty((cap, 2, 2))
+                grown[:ns] = sx[:ns]
+                sx = grown
+            top = (float(r0), c0 + (0.0 if ur == ul else (level - ul) / (ur - ul)))
+            bottom = (float(r0 + 1), c0 + (0.0 if lr == ll else (level - ll) / (lr - ll)))
+            left = (r0 + (0.0 if ll == ul else (level - ul) / (ll - ul)), float(c0))
+            right = (r0 + (0.0 if lr == ur else (level - ur) / (lr - ur)), float(c0 + 1))
+            for s in range(2):
+                if case == 1: a, b = top, left
+                elif case == 2: a, b = right, top
+                elif case == 3: a, b = right, left
+                elif case == 4: a, b = left, bottom
+                elif case == 5: a, b = top, bottom
+                elif case == 6: a, b = (right, top) if s == 0 else (left, bottom)
+                elif case == 7: a, b = right, bottom
+                elif case == 8: a, b = bottom, right
+                elif case == 9: a, b = (top, left) if s == 0 else (bottom, right)
+                elif case == 10: a, b = bottom, top
+                elif case == 11: a, b = bottom, left
+                elif case == 12: a, b = left, right
+                elif case == 13: a, b = top, right
+                else: a, b = left, top
+                sx[ns, 0, 0], sx[ns, 0, 1], sx[ns, 1, 0], sx[ns, 1, 1] = a[0], a[1], b[0], b[1]
+                ns += 1
+                if case != 6 and case != 9:
+                    break
+    # joined as skimage's _assemble_contours: linked lists of points, contour k alive while first[k] >= 0
+    px = np.empty((2 * ns + 2, 2))
+    nxt = np.full(2 * ns + 2, -1, np.int64)
+    first = np.full(ns + 1, -1, np.int64)
+    last = np.full(ns + 1, -1, np.int64)
+    size = np.zeros(ns + 1, np.int64)
+    cap = 16
+    while cap < 8 * ns + 16:
+        cap *= 2
+    sk, sv, ss = np.empty((cap, 2)), np.empty(cap, np.int64), np.zeros(cap, np.int8)  # starts
+    ek, ev, es = np.empty((cap, 2)), np.empty(cap, np.int64), np.zeros(cap, np.int8)  # ends
+    nn = 0
+    nk = 0
+    for s in range(ns):
+        f0, f1, t0, t1 = sx[s, 0, 0], sx[s, 0, 1], sx[s, 1, 0], sx[s, 1, 1]
+        if f0 == t0 and f1 == t1:
+            continue
+        tail = _pop(sk, sv, ss, t0, t1)
+        head = _pop(ek, ev, es, f0, f1)
+        if tail >= 0 and head >= 0:
+            if tail == head:
+                px[nn, 0], px[nn, 1] = t0, t1
+                nxt[last[head]] = nn
+                last[head] = nn
+                size[head] += 1
+                nn += 1
+            else:
+                nxt[last[head]] = first[tail]  # the points of head, then those of tail
+                if tail > head:
+                    last[head] = last[tail]
+                    size[head] += size[tail]
+                    first[tail] = -1
+                    _put(sk, sv, ss, px[first[head], 0], px[first[head], 1], head)
+                    _put(ek, ev, es, px[last[head], 0], px[last[head], 1], head)
+                else:
+                    _pop(sk, sv, ss, px[first[head], 0], px[first[head], 1])
+                    first[tail] = first[head]
+                    size[tail] += size[head]
+                    first[head] = -1
+                    _put(sk, sv, ss, px[first[tail], 0], px[first[tail], 1], tail)
+                    _put(ek, ev, es, px[last[tail], 0], px[last[tail], 1], tail)
+        elif tail < 0 and head < 0:
+            px[nn, 0], px[nn, 1] = f0, f1
+            px[nn + 1, 0], px[nn + 1, 1] = t0, t1
+            nxt[nn] = nn + 1
+            first[nk], last[nk], size[nk] = nn, nn + 1, 2
+            _put(sk, sv, ss, f0, f1, nk)
+            _put(ek, ev, es, t0, t1, nk)
+            nn += 2
+            nk += 1
+        elif head < 0:
+            px[nn, 0], px[nn, 1] = f0, f1
+            nxt[nn] = first[tail]
+            first[tail] = nn
+            size[tail] += 1
+            nn += 1
+            _put(sk, sv, ss, f0, f1, tail)
+        else:
+            px[nn, 0], px[nn, 1] = t0, t1
+            nxt[last[head]] = nn
+            last[head] = nn
+            size[head] += 1
+            nn += 1
+            _put(ek, ev, es, t0, t1, head)
+    total = 0
+    nalive = 0
+    for k in range(nk):
+        if first[k] >= 0:
+            total += size[k]
+            nalive += 1
+    pts = np.empty((total, 2))
+    offs = np.empty(nalive + 1, np.int64)
+    offs[0] = 0
+    q = 0
+    m = 0
+    for k in range(nk):
+        if first[k] >= 0:
+            i = first[k]
+            for _ in range(size[k]):
+                pts[q] = px[i]
+                q += 1
+                i = nxt[i]
+            m += 1
+            offs[m] = q
+    return pts, offs
+
+
+def iso_contours(image: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """The iso-contours of a 2-D image at one level, sub-pixel: ``skimage.measure.find_contours``, compiled.
+
+    Marching squares, its segments joined into contours exactly as scikit-image joins them: the same
+    contours in the same order, each with the same points in the same order from the same start
+    (``find_contours(image, level)`` with its defaults: ``fully_connected='low'``,
+    ``positive_orientation='low'``).  A contour is closed when its last point equals its first.
+
+    Parameters
+    ----------
+    image : (R, C) float or bool
+        The image; the squares with a NaN corner are left out (as in scikit-image).
+    level : float
+        The value the contours follow.
+
+    Returns
+    -------
+    points : (N, 2) float64
+        ``(row, column)`` of every contour's points, px (pixel centres at integers), contour after contour.
+    offsets : (K + 1,) int64
+        Contour ``k`` is ``points[offsets[k]:offsets[k + 1]]``; ``K`` may be 0.
+
+    Raises
+    ------
+    ValueError
+        If ``image`` is not 2-D or ``level`` is not a finite number.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from organlab.raster import iso_contours
+    >>> img = np.zeros((4, 4)); img[1:3, 1:3] = 1.0       # a 2 x 2 px square
+    >>> points, offsets = iso_contours(img, 0.5)
+    >>> offsets.tolist()                                   # one contour of 9 points: closed
+    [0, 9]
+    >>> points[0].tolist(), points[-1].tolist()
+    ([2.5, 2.0], [2.5, 2.0])
+    >>> float(points[:, 0].min()), float(points[:, 0].max())   # half-way between the pixel centres
+    (0.5, 2.5)
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"image must be 2-D, got shape {img.shape}")
+    try:
+        lev = float(level)
+    except (TypeError, ValueError):
+        raise ValueError(f"level must be a number, got {level!r}") from None
+    if not math.isfinite(lev):
+        raise ValueError(f"level must be finite, got {lev}")
+    return _iso_contours(np.ascontiguousarray(img, dtype=np.float64), lev)

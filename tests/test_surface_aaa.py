@@ -153,42 +153,6 @@ def test_centreline_route_in_a_corridor_is_skimages_path(seed):
     np.testing.assert_array_equal(got, np.asarray(want))
 
 
-def test_section_contours_are_skimages():
-    """``_iso_contours`` (the sections' compiled tracer) gives skimage.measure.find_contours's contours exactly.
-
-    The same contours in the same order, each with the same points in the same order from the same start:
-    random noise, smooth fields (level at their median), and integer images whose vertices lie exactly on
-    the level (the degenerate squares skimage skips and the points two contours share).  Measured: equal,
-    array for array, on 3000 such images (90 142 contours) and on the sample's sections at 1 mm; 400 here.
-    """
-    from scipy import ndimage
-    from skimage.measure import find_contours
-
-    from organlab.surface._aaa import _iso_contours
-
-    rng = np.random.default_rng(7)
-    n = 0
-    for t in range(400):
-        h, w = rng.integers(2, 40, 2)
-        kind = t % 4
-        if kind == 0:
-            img, level = rng.random((h, w)), 0.5
-        elif kind == 1:
-            img = ndimage.gaussian_filter(rng.random((h, w)), 2)
-            level = float(np.median(img))
-        elif kind == 2:
-            img, level = rng.integers(0, 3, (h, w)).astype(float), 1.0
-        else:
-            img, level = rng.integers(0, 2, (h, w)).astype(float), 0.5
-        want = find_contours(img, level)
-        pts, offs = _iso_contours(img, level)
-        assert len(offs) - 1 == len(want)
-        for k, ct in enumerate(want):
-            np.testing.assert_array_equal(pts[offs[k] : offs[k + 1]], ct)
-        n += len(want)
-    assert n > 5000  # measured 13 161: the images do have contours
-
-
 def test_centreline_distances_are_scipys():
     """``_distance`` (the centreline's wall distances: exact squared distances by one pass per axis when the
     voxel is a power of two, scipy otherwise) gives ``scipy.ndimage.distance_transform_edt``'s values bit for

@@ -25,6 +25,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..nbcam import undistort_points
+from ..raster import iso_contours
+
 #: Pixels wholly inside within this many px (Chebyshev) of an edge pixel are its candidate colours.
 RADIUS = 2
 #: Residual scale, grey levels: about the residual of the right colour under 1 grey level of noise per channel
@@ -111,7 +114,7 @@ def _edge_coverage(img, bg, m8, radius, tau):
 
 
 def warm_kernels() -> None:
-    """Load the edge coverage's kernel from numba's cache ahead of the poses stage.
+    """Load the edge coverage's kernel (and the outline rays', 20 ms more) from numba's cache ahead of the poses stage.
 
     Loading it is 45 ms CPU in a fresh process (numba's registries already loaded, measured); the
     ``reconstruct`` command does it on a thread while the session's images are decoded.  A tiny view of
@@ -120,6 +123,8 @@ def warm_kernels() -> None:
     img = np.zeros((6, 6, 3), np.uint8)
     img[2:4, 2:4] = 200
     edge_coverage(img, np.zeros((6, 6, 3), np.float32), img[..., 0] > 0)
+    iso_contours(np.zeros((2, 2)), 0.5)  # organlab.poses._tangents.outline_rays': the contours, the undistortion
+    undistort_points(np.zeros((1, 2)), np.ones(5))
 
 
 @njit(cache=True, nogil=True)
