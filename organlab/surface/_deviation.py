@@ -10,9 +10,10 @@ the finishing shaved off shows as well as a bump it added.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 import weakref
 
@@ -226,16 +227,6 @@ def _closest_kernel(points, i0, i1, v, f, gp, gface, starts, lo, cell, dims, k, 
         dist[i] = math.sqrt(dbest)
 
 
-@njit(cache=True, parallel=True)
-def _closest_parallel(points, v, f, gp, gface, starts, lo, cell, dims, k, best, dist, face):
-    """:func:`_closest_kernel` over blocks of points on all cores (the same values)."""
-    n = points.shape[0]
-    nb = (n + 1023) // 1024
-    for b in prange(nb):
-        _closest_kernel(points, b * 1024, min(n, (b + 1) * 1024), v, f, gp, gface, starts, lo, cell, dims, k, best,
-                        dist, face)
-
-
 @njit(cache=True, nogil=True)
 def _within(seeds, r, gp, gface, starts, lo, cell, dims, out):
     """``out[t]`` True for the faces whose centroids lie within ``r`` of a seed."""
@@ -306,13 +297,22 @@ class _Surface:
         k = self.k if k is None else min(k, len(self.f))
         if n and k:
             g = self.tree
-            # both cores for the large queries (the remesher's relaxations, the deviation): the same values
-            if n >= _PARALLEL:
-                _closest_parallel(points, self.v, self.f, g.gp, g.gface, g.starts, g.lo, g.cell, g.dims, k, best,
-                                  dist, face)
+            args = (self.v, self.f, g.gp, g.gface, g.starts, g.lo, g.cell, g.dims, k, best, dist, face)
+            workers = min(os.cpu_count() or 1, 4) if n >= _PARALLEL else 1
+            if workers == 1:
+                _closest_kernel(points, 0, n, *args)
             else:
-                _closest_kernel(points, 0, n, self.v, self.f, g.gp, g.gface, g.starts, g.lo, g.cell, g.dims, k, best,
-                                dist, face)
+                # all cores for the large queries (the remesher's relaxations, the deviation), as the k-d tree's
+                # workers did: the nogil kernel on slices of the points, in threads (the same kernel, the same
+                # values; no parallel specialisation to compile)
+                from concurrent.futures import ThreadPoolExecutor
+
+                cut = [n * i // workers for i in range(workers + 1)]
+                with ThreadPoolExecutor(workers - 1, thread_name_prefix="organlab-closest") as pool:
+                    jobs = [pool.submit(_closest_kernel, points, cut[i], cut[i + 1], *args) for i in range(1, workers)]
+                    _closest_kernel(points, 0, cut[1], *args)
+                    for j in jobs:
+                        j.result()
         return best, dist, face
 
     def faces_within(self, seeds, radius):
