@@ -45,6 +45,20 @@ against 18.3 (the 1.29 one), 14.7 against 18.2 (the 0.88 one).  1 mm sample: the
 degrees, 0.021 / 0.35 voxel), 0.71 against 0.73 s.  Dino 1 mm (joint auto): the cut's repair had dropped a separate
 piece 57 mm away (3.1 voxels of raw surface lost): 34 102 faces (33 890), 20.8 degrees (20.1), -0.0006 % (-0.0055 %),
 0.032 / 0.85 voxel (0.033 / 0.96), 2.76 s against 2.62 s CPU.
+Issue 24 (helper `finspeed`, 2026-12-04 02:30-02:40 UTC, load 5-9 on 2 cores, CPU best of 3, alternating with dc59702,
+``--cache``): the closest points from a numba uniform grid of the face centroids instead of scipy's k-d tree (the same
+6 nearest centroids in the same order, so the same points, distances and faces; the grid's build 0.14 s against the
+tree's 0.55 s on the 0.25 mm raw surface), ``Mesh.volume`` in blocks of faces (the same bits, 4.5x faster), the
+remesher's collapse, flip and split kernels trimmed (their outputs the same on every captured call): the finished
+meshes are the same bit for bit (1 mm: 20 934 faces, 30.4 degrees, 0.021 / 0.35 voxel; 0.25 mm: 143 982 faces, 21.3
+degrees, 0.022 / 0.69 voxel).  Sample 1 mm 0.65 / 0.70 -> 0.41 / 0.40 s; 0.25 mm 11.8 / 10.3 -> 10.4 / 8.8 s (two
+rounds each), peak RSS 715-727 -> 642-643 MB (this script with cached surfaces: the finishing's own peak).  Left at
+0.25 mm (profile of the new code, 12.8 s CPU under load): the quality checks of each new mesh (``mesh_quality``, the
+repair's defect checks: 2.8 s, a third of it the non-manifold-vertex fans), the collapses 2.0 s (a sweep revisits
+every refused candidate), the closest-point queries 2.2 s (1.4 M points), flips 0.7 s, smoothing 0.7 s.
+bench_viewer --sizes 1 --repeat 3 right after (loads 6-12, wall figures meaningless): finish_surface 0.407 s CPU of its
+thread (dc59702 run next, at load 12: 0.565 s; the other stages 1.3-1.6x slower in that run), the full update 1.88 CPU
+s of the process (2.63); no numba kernel compiled by the viewer.
 """
 
 from __future__ import annotations
