@@ -35,7 +35,8 @@ _PARALLEL = 20_000
 
 #: The centroid grid's cell edge, in mean edge lengths of the mesh's faces, and at most this many cells per face
 #: (its offsets, 8 bytes a cell).  Measured on the sample's raw surfaces (k = 6, points 0.3 edge about the
-#: vertices; the k-d tree's same candidates, in the same order): 1 mm 0.028 s against 0.055 s, 0.25 mm (0.93 M
+#: vertices; the k-d tree's same candidates, in the same order; on a lattice, centroids at equal distances may
+#: come in another order): 1 mm 0.028 s against 0.055 s, 0.25 mm (0.93 M
 #: faces, capped at 2 cells a face: 2.6 edges) 0.43 s against 0.93 s, cells of 1.5-3 edges within 10 %.
 _CELL_EDGES, _CELLS_PER_FACE = 2.0, 2.0
 
