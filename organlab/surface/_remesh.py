@@ -779,8 +779,9 @@ def _star_min(V, F, verts):
 
 def _relax(V, F, H, ref, rsize, relax):
     """Tangential relaxation toward the area-weighted centroid of the star, projected onto ``ref``."""
-    n = _vertex_normals(V, F)
-    c = _neighbour_mean(V, F) - V
+    n, c = np.empty((len(V), 3)), np.empty((len(V), 3))
+    _star_sums(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int64), n, c)  # one pass
+    c -= V
     c -= np.einsum("ij,ij->i", c, n)[:, None] * n
     moved = V + relax * c
     # 4 candidate faces: a relaxation step moves a vertex a fraction of an edge, the next one corrects a miss
