@@ -58,7 +58,8 @@ repair's defect checks: 2.8 s, a third of it the non-manifold-vertex fans), the 
 every refused candidate), the closest-point queries 2.2 s (1.4 M points), flips 0.7 s, smoothing 0.7 s.
 bench_viewer --sizes 1 --repeat 3 right after (loads 6-12, wall figures meaningless): finish_surface 0.407 s CPU of its
 thread (dc59702 run next, at load 12: 0.565 s; the other stages 1.3-1.6x slower in that run), the full update 1.88 CPU
-s of the process (2.63); no numba kernel compiled by the viewer.
+s of the process (2.63); no numba kernel compiled by the viewer.  The final code (9da7026, 03:00 UTC, load 7-11, two more
+alternating rounds): 1 mm 0.61 / 0.71 -> 0.40 / 0.42 s, 0.25 mm 11.50 / 12.18 -> 9.15 / 9.62 s, peak 723-732 -> 649-654 MB.
 """
 
 from __future__ import annotations
