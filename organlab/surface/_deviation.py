@@ -1,7 +1,7 @@
 """How far one surface lies from another: closest points on a triangle mesh (numpy, scipy and one numba kernel).
 
 :func:`closest_points` finds, for each query point, the nearest point of a mesh among the
-triangles whose centroids are nearest to it (a k-d tree of the centroids); :func:`surface_deviation`
+triangles whose centroids are nearest to it (a uniform grid of the centroids, numba); :func:`surface_deviation`
 measures a finished surface against the raw marching-cubes one both ways (the finished surface's
 vertices and face centres to the raw surface, the raw vertices to the finished one), so a thin part
 the finishing shaved off shows as well as a bump it added.
@@ -10,6 +10,7 @@ the finishing shaved off shows as well as a bump it added.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from numba import njit
@@ -25,11 +26,117 @@ _SURFACES = weakref.WeakKeyDictionary()
 #: centroids: measured on the 1 mm dino's marching-cubes mesh against a brute-force search over all
 #: 57 442 faces, 300 points scattered 0.7 mm about it: k = 8 misses 2 by at most 0.0017 mm, k = 6 3 by
 #: 0.014 mm, k = 4 9 by 0.099 mm.  The figures of a finished 1 mm sample are the same at 4, 6 and 8
-#: (0.0324 / 0.7063 voxels); the k-d tree's query is most of the time (0.10 s at 4, 0.14 s at 8).
+#: (0.0324 / 0.7063 voxels); the candidate search is most of the time (0.10 s at 4, 0.14 s at 8, k-d tree).
 _K = 6
 
-#: Queries of at least this many points run the k-d tree on all cores (threads cost more below).
+#: Queries of at least this many points run on all cores (threads cost more below).
 _PARALLEL = 20_000
+
+
+#: The centroid grid's cell edge, in mean edge lengths of the mesh's faces, and at most this many cells per face
+#: (its offsets, 8 bytes a cell).  Measured on the sample's raw surfaces (k = 6, points 0.3 edge about the
+#: vertices; the k-d tree's same candidates, in the same order; on a lattice, centroids at equal distances may
+#: come in another order): 1 mm 0.028 s against 0.055 s, 0.25 mm (0.93 M
+#: faces, capped at 2 cells a face: 2.6 edges) 0.43 s against 0.93 s, cells of 1.5-3 edges within 10 %.
+_CELL_EDGES, _CELLS_PER_FACE = 2.0, 2.0
+
+
+@njit(cache=True, nogil=True)
+def _grid_build(v, f, lo, cell, dims, gp, gface, starts):
+    """Bucket the centroids of faces ``f`` into the cells (counting sort; each cell's faces ascending)."""
+    nf = f.shape[0]
+    ny, nz = dims[1], dims[2]
+    cid = np.empty(nf, dtype=np.int64)
+    cen = np.empty((nf, 3))
+    starts[:] = 0
+    for t in range(nf):
+        a, b, c = f[t, 0], f[t, 1], f[t, 2]
+        for k in range(3):
+            cen[t, k] = ((v[a, k] + v[b, k]) + v[c, k]) / 3.0  # as numpy's v[f].mean(axis=1)
+        i = min(max(int(math.floor((cen[t, 0] - lo[0]) / cell)), 0), dims[0] - 1)
+        j = min(max(int(math.floor((cen[t, 1] - lo[1]) / cell)), 0), ny - 1)
+        k_ = min(max(int(math.floor((cen[t, 2] - lo[2]) / cell)), 0), nz - 1)
+        cid[t] = (i * ny + j) * nz + k_
+        starts[cid[t] + 1] += 1
+    for c in range(starts.shape[0] - 1):
+        starts[c + 1] += starts[c]
+    pos = starts[:-1].copy()
+    for t in range(nf):
+        q = pos[cid[t]]
+        pos[cid[t]] += 1
+        gp[q, 0], gp[q, 1], gp[q, 2] = cen[t, 0], cen[t, 1], cen[t, 2]
+        gface[q] = t
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_gap2(lo, cell, a, b, c, px, py, pz):
+    """Squared distance from ``(px, py, pz)`` to cell ``(a, b, c)``."""
+    bx = max(0.0, max(lo[0] + a * cell - px, px - (lo[0] + (a + 1) * cell)))
+    by = max(0.0, max(lo[1] + b * cell - py, py - (lo[1] + (b + 1) * cell)))
+    bz = max(0.0, max(lo[2] + c * cell - pz, pz - (lo[2] + (c + 1) * cell)))
+    return bx * bx + by * by + bz * bz
+
+
+@njit(cache=True, nogil=True)
+def _grid_knn(px, py, pz, gp, gface, starts, lo, cell, dims, k, dk, ik):
+    """The ``k`` centroids nearest to ``(px, py, pz)`` into ``ik`` (faces), nearest first, their squared distances
+    into ``dk``; returns how many (fewer than ``k`` only for a mesh of fewer faces).
+
+    Shells of cells about the point's cell (clamped into the grid), each cell skipped when it lies farther than
+    the ``k``-th candidate so far; done when the next shell (at least ``s`` cells plus the point's distance to its
+    cell's walls away) is farther than it too.
+    """
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    fx, fy, fz = (px - lo[0]) / cell, (py - lo[1]) / cell, (pz - lo[2]) / cell
+    cx = min(max(int(math.floor(fx)), 0), nx - 1)
+    cy = min(max(int(math.floor(fy)), 0), ny - 1)
+    cz = min(max(int(math.floor(fz)), 0), nz - 1)
+    m = np.inf  # the point's distance to its cell's walls (0 where it lies outside the grid)
+    for f_, c_ in ((fx, cx), (fy, cy), (fz, cz)):
+        if c_ <= f_ < c_ + 1:
+            m = min(m, min(f_ - c_, c_ + 1 - f_))
+        else:
+            m = 0.0
+    m *= cell
+    smax = max(nx, max(ny, nz))
+    n = 0
+    s = 0
+    while True:
+        for a in range(max(cx - s, 0), min(cx + s, nx - 1) + 1):
+            ea = a == cx - s or a == cx + s
+            for b in range(max(cy - s, 0), min(cy + s, ny - 1) + 1):
+                step = 1 if (ea or b == cy - s or b == cy + s) else 2 * s  # the shell's cells only
+                c = cz - s
+                while c <= cz + s:
+                    if 0 <= c < nz and (n < k or _cell_gap2(lo, cell, a, b, c, px, py, pz) <= dk[k - 1]):
+                        cid = (a * ny + b) * nz + c
+                        for q in range(starts[cid], starts[cid + 1]):
+                            dx, dy, dz = gp[q, 0] - px, gp[q, 1] - py, gp[q, 2] - pz
+                            d = dx * dx + dy * dy + dz * dz
+                            if n < k:
+                                j = n
+                                n += 1
+                            elif d < dk[k - 1]:
+                                j = k - 1
+                            else:
+                                continue
+                            while j > 0 and dk[j - 1] > d:
+                                dk[j] = dk[j - 1]
+                                ik[j] = ik[j - 1]
+                                j -= 1
+                            dk[j] = d
+                            ik[j] = gface[q]
+                    if step == 0:
+                        break
+                    c += step
+        if n == k:
+            r = s * cell + m
+            if dk[k - 1] <= r * r:
+                break
+        if s > smax:
+            break
+        s += 1
+    return n
 
 
 def _tri_closest(p, a, b, c):
@@ -67,13 +174,17 @@ def _tri_closest(p, a, b, c):
 
 
 @njit(cache=True, nogil=True)
-def _closest_kernel(points, v, f, cand, best, dist, face):
-    """For each point, the closest point over its candidate triangles (Ericson's regions, one at a time)."""
-    for i in range(points.shape[0]):
+def _closest_kernel(points, i0, i1, v, f, gp, gface, starts, lo, cell, dims, k, best, dist, face):
+    """For points ``i0:i1``, the closest point over their ``k`` candidate triangles (those of the nearest centroids,
+    :func:`_grid_knn`, nearest first; Ericson's regions, one triangle at a time)."""
+    dk = np.empty(k)
+    ik = np.empty(k, dtype=np.int64)
+    for i in range(i0, i1):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         dbest = np.inf
-        for j in range(cand.shape[1]):
-            t = cand[i, j]
+        nc = _grid_knn(px, py, pz, gp, gface, starts, lo, cell, dims, k, dk, ik)
+        for j in range(nc):
+            t = ik[j]
             a, b, c = f[t, 0], f[t, 1], f[t, 2]
             ax, ay, az = v[a, 0], v[a, 1], v[a, 2]
             abx, aby, abz = v[b, 0] - ax, v[b, 1] - ay, v[b, 2] - az
@@ -117,6 +228,49 @@ def _closest_kernel(points, v, f, cand, best, dist, face):
         dist[i] = math.sqrt(dbest)
 
 
+@njit(cache=True, nogil=True)
+def _within(seeds, r, gp, gface, starts, lo, cell, dims, out):
+    """``out[t]`` True for the faces whose centroids lie within ``r`` of a seed."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    r2 = r * r
+    for i in range(seeds.shape[0]):
+        px, py, pz = seeds[i, 0], seeds[i, 1], seeds[i, 2]
+        a0 = max(int(math.floor((px - r - lo[0]) / cell)), 0)
+        a1 = min(int(math.floor((px + r - lo[0]) / cell)), nx - 1)
+        b0 = max(int(math.floor((py - r - lo[1]) / cell)), 0)
+        b1 = min(int(math.floor((py + r - lo[1]) / cell)), ny - 1)
+        c0 = max(int(math.floor((pz - r - lo[2]) / cell)), 0)
+        c1 = min(int(math.floor((pz + r - lo[2]) / cell)), nz - 1)
+        for a in range(a0, a1 + 1):
+            for b in range(b0, b1 + 1):
+                for c in range(c0, c1 + 1):
+                    cid = (a * ny + b) * nz + c
+                    for q in range(starts[cid], starts[cid + 1]):
+                        dx, dy, dz = gp[q, 0] - px, gp[q, 1] - py, gp[q, 2] - pz
+                        if dx * dx + dy * dy + dz * dz <= r2:
+                            out[gface[q]] = True
+
+
+class _Grid:
+    """The faces' centroids bucketed into a uniform grid of cubes (:data:`_CELL_EDGES`)."""
+
+    def __init__(self, v, f):
+        nf = len(f)
+        c = v[f[:, 0]]  # the centroids' box is within the vertices' box; the cells are clamped anyway
+        lo, hi = (v.min(axis=0), v.max(axis=0)) if len(v) else (np.zeros(3), np.zeros(3))
+        edge = float(np.linalg.norm(v[f[:, 1]] - c, axis=1).mean()) if nf else 1.0
+        span = np.maximum(hi - lo, 1e-9)
+        cell = max(_CELL_EDGES * edge, float(np.cbrt(np.prod(span) / max(_CELLS_PER_FACE * nf, 1.0))), 1e-9)
+        dims = np.floor(span / cell).astype(np.int64) + 1
+        while dims.prod() > _CELLS_PER_FACE * nf + 64:  # flat boxes: the volume bound above is not enough
+            cell *= 1.25
+            dims = np.floor(span / cell).astype(np.int64) + 1
+        self.lo, self.cell, self.dims = lo.astype(np.float64), float(cell), dims
+        self.gp, self.gface = np.empty((nf, 3)), np.empty(nf, dtype=np.int64)
+        self.starts = np.empty(int(dims.prod()) + 1, dtype=np.int64)
+        _grid_build(v, f, self.lo, self.cell, dims, self.gp, self.gface, self.starts)
+
+
 def _surface(mesh):
     """The :class:`_Surface` of ``mesh``, built once per mesh (meshes are immutable)."""
     got = _SURFACES.get(mesh)
@@ -126,16 +280,14 @@ def _surface(mesh):
 
 
 class _Surface:
-    """A mesh prepared for closest-point queries (its centroid tree built once)."""
+    """A mesh prepared for closest-point queries (its centroid grid built once)."""
 
     def __init__(self, mesh, tree=None):
-        from scipy.spatial import cKDTree
-
-        self.v = np.asarray(mesh.vertices, dtype=np.float64)
-        self.f = np.asarray(mesh.faces, dtype=np.int64)
-        # ``tree``: the centroid tree of a mesh with these faces and vertices at most a rounding apart (it
+        self.v = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+        self.f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        # ``tree``: the centroid grid of a mesh with these faces and vertices at most a rounding apart (it
         # only picks the candidate faces; the distances are this mesh's own)
-        self.tree = cKDTree(self.v[self.f].mean(axis=1)) if tree is None else tree
+        self.tree = _Grid(self.v, self.f) if tree is None else tree
         self.k = min(_K, len(self.f))
 
     def closest(self, points, k=None):
@@ -143,13 +295,33 @@ class _Surface:
         points = np.ascontiguousarray(points, dtype=np.float64)
         n = len(points)
         best, dist, face = np.empty((n, 3)), np.empty(n), np.empty(n, dtype=np.int64)
-        if n:
-            # both cores for the large queries (the remesher's relaxations, the deviation): the same candidates
-            _, cand = self.tree.query(points, k=self.k if k is None else min(k, len(self.f)),
-                                      workers=-1 if n >= _PARALLEL else 1)
-            _closest_kernel(points, self.v, self.f, np.ascontiguousarray(cand.reshape(n, -1), dtype=np.int64), best,
-                            dist, face)
+        k = self.k if k is None else min(k, len(self.f))
+        if n and k:
+            g = self.tree
+            args = (self.v, self.f, g.gp, g.gface, g.starts, g.lo, g.cell, g.dims, k, best, dist, face)
+            workers = min(os.cpu_count() or 1, 4) if n >= _PARALLEL else 1
+            if workers == 1:
+                _closest_kernel(points, 0, n, *args)
+            else:
+                # all cores for the large queries (the remesher's relaxations, the deviation), as the k-d tree's
+                # workers did: the nogil kernel on slices of the points, in threads (the same kernel, the same
+                # values; no parallel specialisation to compile)
+                from concurrent.futures import ThreadPoolExecutor
+
+                cut = [n * i // workers for i in range(workers + 1)]
+                with ThreadPoolExecutor(workers - 1, thread_name_prefix="organlab-closest") as pool:
+                    jobs = [pool.submit(_closest_kernel, points, cut[i], cut[i + 1], *args) for i in range(1, workers)]
+                    _closest_kernel(points, 0, cut[1], *args)
+                    for j in jobs:
+                        j.result()
         return best, dist, face
+
+    def faces_within(self, seeds, radius):
+        """``(F,)`` bool: the faces whose centroids lie within ``radius`` (mm) of one of ``seeds`` ``(S, 3)``."""
+        g, out = self.tree, np.zeros(len(self.f), dtype=bool)
+        _within(np.ascontiguousarray(seeds, dtype=np.float64).reshape(-1, 3), float(radius), g.gp, g.gface, g.starts,
+                g.lo, g.cell, g.dims, out)
+        return out
 
 
 def closest_points(points: np.ndarray, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -210,9 +382,9 @@ def _distances(finished, raw, rs):
     """``(d_out, d_in)``, mm: ``finished``'s vertices then face centres to ``raw`` (prepared as ``rs``), and
     ``raw``'s vertices to ``finished`` (:func:`surface_deviation`'s figures come from these).
 
-    Up to :data:`_SIDE_BY_SIDE` raw vertices the second direction (``finished``'s tree built, then queried) runs
+    Up to :data:`_SIDE_BY_SIDE` raw vertices the second direction (``finished``'s grid built, then queried) runs
     in a second thread while this one queries ``rs``: the same calls, so the same distances; both release the GIL
-    (the k-d tree's query, the nogil kernel).  The 1 mm sample: 31 403 and 28 864 points, about 0.05 and 0.04 s
+    (the grid's build and the query kernels).  The 1 mm sample: 31 403 and 28 864 points, about 0.05 and 0.04 s
     CPU, the last step of the viewer's full update, when the AAA measures beside it are done.
     """
     fv, ff = np.asarray(finished.vertices), np.asarray(finished.faces)

@@ -203,8 +203,7 @@ def near_deviation(mesh: Mesh, reference: Mesh, seeds: np.ndarray, reach: float,
         return 0.0
     p = np.concatenate([mv[np.unique(mf[loc])], mv[mf[loc]].mean(axis=1)])
     _, a, _ = ref.closest(p)
-    near = ref.tree.query_ball_point(seeds, reach + 3.0 * vs)
-    pts = np.unique(ref.f[np.unique(np.concatenate([np.asarray(i, dtype=np.int64) for i in near]))])
+    pts = np.unique(ref.f[ref.faces_within(seeds, reach + 3.0 * vs)])
     pts = pts[np.isfinite(cKDTree(seeds).query(ref.v[pts], distance_upper_bound=reach + 2.0 * vs)[0])]
     b = _Surface(Mesh(mv, mf[_local(mv, mf, seeds, reach + 3.0 * vs)])).closest(ref.v[pts])[1] if len(pts) else a[:1]
     return float(max(a.max(), b.max()) / vs)
