@@ -308,14 +308,17 @@ def test_dino_init_with_its_par_file_reconstructs_like_the_hand_written_session(
                   for n, c in zip(data.names, data.cameras)],
         "roi": {"min": roi[:3].tolist(), "max": roi[3:].tolist()}, "backdrop": {"color": "border"},
     })
-    a, b = reconstruct(auto, voxel_size=2.0, finish=False), reconstruct(hand, voxel_size=2.0, finish=False)
+    # the joint silhouette step off in both: it re-keys the views from the same images, cameras and backdrop the
+    # asserts below compare, so it adds no check of the session, and it was 80 % of the test's CPU (measured, one
+    # process, load 7: a reconstruction 14 s CPU with it, 2.9 s without; 14 469 voxels with it, 14 342 without)
+    a, b = (reconstruct(root, voxel_size=2.0, finish=False, joint_silhouettes="off") for root in (auto, hand))
     for ca, cb in zip(a.cameras, b.cameras):
         np.testing.assert_array_equal(ca.K, cb.K)
         np.testing.assert_array_equal(ca.R, cb.R)
         np.testing.assert_array_equal(ca.t, cb.t)
     np.testing.assert_array_equal(a.occupancy, b.occupancy)
     assert a.report["volume_mm3"] == b.report["volume_mm3"] and a.report["mesh_volume_mm3"] == b.report["mesh_volume_mm3"]
-    assert a.occupancy.sum() > 10000  # a dinosaur, not an empty grid (measured ~15 000 voxels of 8 mm^3)
+    assert a.occupancy.sum() > 10000  # a dinosaur, not an empty grid (measured 14 342 voxels of 8 mm^3)
 
 
 def test_the_examples_run():

@@ -205,6 +205,36 @@ def backdrop(dino, tmp_path_factory):
 
 @needs_data
 @pytest.mark.slow
+def test_dino_as_a_backdrop_session(dino, backdrop):
+    """The photos as a session with a border backdrop (no masks, no frames), the default settings at 1 mm: the
+    fixture's joint 'auto' run, the reconstruction `organlab.pipeline.reconstruct(folder, voxel_size=1.0)` makes
+    (the same Engine and Settings; the AAA measures, off there, change no surface).  Moved from
+    test_coloring_robust.py, which reconstructed the same session again (18 CPU s)."""
+    data, masks, cams = dino
+    rec = backdrop["auto"]["rec"]
+    assert [v["image"] for v in rec.report["views"]] == [f"views/{data.names[i]}" for i in np.flatnonzero(data.good)]
+    assert {v["silhouette_source"] for v in rec.report["views"]} == {"backdrop"}
+    # the marching-cubes surface: this measures the silhouettes (the finished, remeshed surface rounds the
+    # dinosaur's thin parts)
+    renders = [model_mask(rec.raw_mesh, c) for c in cams]
+    ious = [(r & m).sum() / (r | m).sum() for r, m in zip(renders, masks)]
+    # like with like: the authors' silhouettes are their recipe (grey > 0.19, dilate 10 px, erode 7 px), i.e. a
+    # closing and a conservative growth of 3 px beyond the outline; the same recipe applied to our hull's outline
+    grown = middlebury_silhouettes([r.astype(np.uint8) * 255 for r in renders], threshold=0.5)
+    fair = [(g & m).sum() / (g | m).sum() for g, m in zip(grown, masks)]
+    print(f"backdrop session, 1 mm: mean IoU {np.mean(ious):.4f} (min {np.min(ious):.4f}); "
+          f"with the authors' growth {np.mean(fair):.4f} (min {np.min(fair):.4f})")
+    # measured 1 mm: raw 0.948 (min 0.935; 0.950 before the near-specimen threshold floor), issue 13's
+    # target 0.975 NOT met by the raw outline: the authors' 3 px growth is ~5000 px per view (their masks against the
+    # hull from their own masks: 0.986).  With the same growth applied to our outline: 0.980 (min 0.965); what remains
+    # is the dark holes their threshold leaves in views 2-4 (keying fills them).  Before keying (Li against a black
+    # frame): 0.948 raw.
+    assert np.mean(ious) > 0.94 and np.mean(fair) > 0.975 and min(fair) > 0.95
+    assert rec.mesh.is_watertight
+
+
+@needs_data
+@pytest.mark.slow
 def test_dino_backdrop_joint_silhouettes_help(backdrop):
     """The joint step keys the views again with the others' hull as a prior; on keyed views it must not take the dark
     stand or the shadows for the specimen (the region rule did: 0.980 -> 0.972 like with like at 1 mm)."""
