@@ -735,6 +735,8 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     f, nv = np.asarray(mesh.faces, dtype=np.int64), len(mesh.vertices)
     piece = _pieces(f, nv)[1][f[:, 0]]
     touched = np.isin(piece, piece[~keep])
+    if not (keep & touched).any():  # the cut takes whole pieces (a fin's shreds): nothing of them to fill
+        return mesh, 0
     rep, _ = repair_mesh(Mesh(mesh.vertices, f[keep & touched]), speck_mm=speck_mm)
     if not touched.all():
         used, rest = np.unique(f[~touched], return_inverse=True)
