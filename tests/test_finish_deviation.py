@@ -161,8 +161,9 @@ def test_the_report_states_the_deviation_and_the_worst_view_iou_change(small_ses
 # voxels.  finish_surface's last step (``stay_on_data``, organlab/surface/_guard.py) puts the lost raw points back
 # as vertices and pulls the vertices still more than 0.9 voxel off back onto the raw surface, keeping the angle.
 
-def _finned_ball(voxel_size, seed):
-    """A 15 mm ball with three half-discs of radius 24 mm, 1-2 voxels thick (random planes), and its grid."""
+def _finned_occupancy(voxel_size, seed, half=None):
+    """A 15 mm ball with three half-discs of radius 24 mm, 1-2 voxels thick (random planes; ``half``: the
+    half-thickness in voxels, all three): the occupancy and its grid."""
     n = int(60 / voxel_size) + 1
     grid = VoxelGrid(origin=(-30.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
@@ -173,9 +174,15 @@ def _finned_ball(voxel_size, seed):
         d /= np.linalg.norm(d)
         e = np.cross(d, rng.normal(size=3))
         e /= np.linalg.norm(e)
-        body |= ((np.abs(x * d[0] + y * d[1] + z * d[2]) <= rng.uniform(0.5, 1.0) * voxel_size)
+        t = rng.uniform(0.5, 1.0) if half is None else half
+        body |= ((np.abs(x * d[0] + y * d[1] + z * d[2]) <= t * voxel_size)
                  & (x**2 + y**2 + z**2 <= 24.0**2) & (x * e[0] + y * e[1] + z * e[2] > 0))
-    return mesh_from_field(body, grid)
+    return body, grid
+
+
+def _finned_ball(voxel_size, seed, half=None):
+    """The surface of :func:`_finned_occupancy`."""
+    return mesh_from_field(*_finned_occupancy(voxel_size, seed, half))
 
 
 # measured (before -> after the last step): seed 0 at 2 mm 3.4555 -> 0.8392 voxels, seed 1 at 1.5 mm (a
@@ -200,6 +207,40 @@ def test_finished_fins_stay_within_a_voxel(voxel_size, seed):
     assert fin.final["min_angle_deg"] >= 20.0
     assert fin.final["nonmanifold_edges"] == 0 and fin.final["boundary_edges"] == 0
     # the volume is the raw's (the whole finishing: measured -0.30 % and +0.03 %; the fins are a few voxels thin)
+    assert abs(fin.volume_change_pct) < 0.5, fin.volume_change_pct
+
+
+# Fins thinner than a voxel at 1 mm (0.7 and 0.8 voxel thick): the occupancy is a one-voxel layer whose voxels meet
+# diagonally, and on a cube face between two such voxels the bilinear saddle is 0.5, exactly the level.  Lewiner's
+# marching cubes resolved the tie one way in one cube and the other way in the next: 63 and 681 edges of four faces.
+# Repair then cut those faces out, the holes it could not close sent the surface down the open-surface path, and the
+# finished surface was 1.89 / 3.29 voxels off the raw one, 0.79 / 0.10 degrees, not closed, volume -48 % / -68 %.
+# Now such a surface is meshed again 1e-5 below the level (TIE_LEVEL), where every tie joins the two voxels.
+# Developed on seeds 0-2 (half-thickness 0.25-0.5 voxel); these seeds were not looked at before.  Measured after:
+# 0.601 / 0.568 voxel max, 0.128 mean, 21.62 / 21.41 degrees, volume -0.14 % / -0.04 %.  The bounds are the
+# promises (1 voxel, 0.25 mean, 20 degrees, closed and manifold) and the volume within 0.5 % (the broken surface
+# lost half of it).  Not yet kept: thinner fins, and some of these thicknesses on other seeds (their finished
+# surfaces are still up to 2.8 voxels off, with slivers on the fins: the remesher projects a vertex of one side of
+# a sheet a fraction of a voxel thick onto the other).
+@pytest.mark.parametrize("seed, half", [(6, 0.35), (5, 0.4)])
+def test_fins_thinner_than_a_voxel_at_1mm(seed, half):
+    from skimage.measure import marching_cubes
+
+    from organlab.surface import mesh_quality
+
+    body, grid = _finned_occupancy(1.0, seed, half)
+    raw = mesh_from_field(body, grid)
+    # the case is real: at the level itself, marching cubes gives edges of more than two faces
+    _, f, _, _ = marching_cubes(np.pad(body.astype(np.float32), 1), 0.5)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    assert (np.unique(e, axis=0, return_counts=True)[1] > 2).sum() > 50
+    q = mesh_quality(raw)  # the surface used is closed and manifold
+    assert q["nonmanifold_edges"] == q["boundary_edges"] == q["nonmanifold_vertices"] == 0
+    fin = finish_surface(raw, voxel_size=1.0)
+    dev = surface_deviation(fin.mesh, raw, voxel_size=1.0)
+    assert dev["max_voxels"] < 1.0 and dev["mean_voxels"] < 0.25, dev
+    assert fin.watertight and fin.final["min_angle_deg"] >= 20.0
+    assert fin.final["nonmanifold_edges"] == 0 and fin.final["boundary_edges"] == 0
     assert abs(fin.volume_change_pct) < 0.5, fin.volume_change_pct
 
 
@@ -278,3 +319,32 @@ def test_the_sliver_cut_keeps_the_pieces_it_does_not_touch():
     np.testing.assert_array_equal(np.sort(out.vertices[kept], axis=0), np.sort(two.vertices[bead], axis=0))
     # and the cut was filled: the volume within 1 % (measured -0.26 %, the fill a chord across the curved ball)
     assert abs(out.volume - two.volume) / two.volume < 0.01
+
+
+def test_marching_cubes_joins_voxels_that_meet_at_an_edge():
+    """Four voxels that meet at edges only (the smallest piece of a slanted one-voxel fin, seed 5, with such
+    edges): their cube faces' saddles are the level; the surface is closed, manifold and one piece (the ties taken
+    as joined), on the dense and the band path; a surface without such a tie is scikit-image's at the level."""
+    from skimage.measure import marching_cubes
+
+    from organlab.surface import mesh_quality
+    from tests.test_surface_scale import _band
+
+    grid = VoxelGrid(origin=(0.0, 0.0, 0.0), voxel_size=1.0, shape=(6, 6, 6))
+    occ = np.zeros(grid.shape, dtype=bool)
+    occ[tuple(np.array([[1, 1, 1], [1, 2, 2], [2, 0, 1], [2, 1, 2]]).T + 1)] = True
+    _, f, _, _ = marching_cubes(np.pad(occ.astype(np.float32), 1), 0.5)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    assert (np.unique(e, axis=0, return_counts=True)[1] > 2).any()  # the case is real
+    for field in (occ, _band(occ.astype(np.float32), grid, block=4)[0]):
+        m = mesh_from_field(field, grid)
+        q = mesh_quality(m)
+        assert q["nonmanifold_edges"] == q["boundary_edges"] == q["nonmanifold_vertices"] == 0, q
+        assert q["components"] == 1 and m.is_watertight
+        assert np.abs(m.vertices - np.round(m.vertices * 2) / 2).max() < 2e-5  # on the edge midpoints, 1e-5 off
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    ball = (x - 2.5) ** 2 + (y - 2.5) ** 2 + (z - 2.5) ** 2 <= 2.2**2
+    v, f, _, _ = marching_cubes(np.pad(ball.astype(np.float32), 1), 0.5)
+    m = mesh_from_field(ball, grid)
+    np.testing.assert_array_equal(m.vertices, v.astype(np.float64) - 1.0)
+    assert {tuple(sorted(t)) for t in m.faces.tolist()} == {tuple(sorted(t)) for t in f.tolist()}
