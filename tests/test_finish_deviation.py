@@ -185,10 +185,20 @@ def _finned_ball(voxel_size, seed, half=None):
     return mesh_from_field(*_finned_occupancy(voxel_size, seed, half))
 
 
+def _without_thin(monkeypatch):
+    """finish_surface as before the thin-part handling (._thin): no vertex put back after smoothing, every closest
+    point taken by the remesher's projections, whichever side of a thin part it is on."""
+    monkeypatch.setattr("organlab.surface._repair.keep_thin", lambda smoothed, raw: (smoothed, 0))
+    monkeypatch.setattr("organlab.surface._remesh.same_side", lambda surface, face, normals: np.ones(len(face), bool))
+
+
 # measured (before -> after the last step): seed 0 at 2 mm 3.4555 -> 0.8392 voxels, seed 1 at 1.5 mm (a
 # scene the step was not developed on) 1.0157 -> 0.7197; the smallest angles 20.23 and 20.48 degrees
 @pytest.mark.parametrize("voxel_size, seed", [(2.0, 0), (1.5, 1)])
-def test_finished_fins_stay_within_a_voxel(voxel_size, seed):
+def test_finished_fins_stay_within_a_voxel(voxel_size, seed, monkeypatch):
+    # the last step on the case it was made for: the thin-part handling (._thin) now keeps these fins within a voxel
+    # before it (test_thin_parts_are_not_smoothed_through), so it is switched off here
+    _without_thin(monkeypatch)
     raw = _finned_ball(voxel_size, seed)
     fin = finish_surface(raw, voxel_size=voxel_size)
     guard = [s for s in fin.steps if s["step"] == "stay_on_data"]
@@ -289,7 +299,10 @@ def _tunnels(seed):
 # no last step.  The bounds: under the promised voxel with a margin (0.8), the volume within 0.05 % (a filled tunnel
 # is 1.4 %)
 @pytest.mark.parametrize("seed", [2, 4])
-def test_a_thin_wall_over_a_tunnel_is_not_cut_away(seed):
+def test_a_thin_wall_over_a_tunnel_is_not_cut_away(seed, monkeypatch):
+    # the cut on the case it was made for, the thin-part handling switched off (as above: with it, no face is left
+    # below the angle for the cut, test_thin_parts_are_not_smoothed_through)
+    _without_thin(monkeypatch)
     raw = _tunnels(seed)
     fin = finish_surface(raw, voxel_size=1.0, min_edge_mm=3.0)
     cut = [s for s in fin.steps if s["step"] == "slivers"]
@@ -348,3 +361,48 @@ def test_marching_cubes_joins_voxels_that_meet_at_an_edge():
     m = mesh_from_field(ball, grid)
     np.testing.assert_array_equal(m.vertices, v.astype(np.float64) - 1.0)
     assert {tuple(sorted(t)) for t in m.faces.tolist()} == {tuple(sorted(t)) for t in f.tolist()}
+
+
+# ------------------------------------------------------------------ thin parts are not smoothed through (._thin)
+# Taubin smoothing moves each side of a sheet on its own; where a part is thinner than the staircase it relaxes, the
+# sides pass through each other, the remesher (starting from the smoothed surface, projecting by closest point)
+# puts vertices on the wrong side of the fin, and slivers are left that the later steps cut out or pull back.  Now
+# such vertices (and two rings around) get their raw places back before remeshing, and a projection onto the other
+# side of a thin part is refused.  Developed on the 1 mm finned balls (occupancy seeds 3, 4, 6; coverage fields);
+# the scenes of the two tests above were not used: they now meet the promises with neither the last step nor the
+# cut.  Measured against the raw surface less its specks (before, without the later steps' work as their tests
+# switch it off -> now): fins 2 mm seed 0: 3.46 voxels -> 0.559 max / 0.090 mean, 23.7 deg; 1.5 mm seed 1: 1.02 ->
+# 0.695 / 0.134, 27.0 deg; tunnels seed 2: faces below 20 deg left for the cut -> 0.382 / 0.030, 28.3 deg; 1 mm fins
+# 0.8 voxel thick (occupancy seed 4; finished before with every step: 2.80 voxels, 7.75 deg) -> 0.60 / 0.095, 21.3 deg.
+# Bounds: the promises, with no later step needed (one would hide a regression here); the volume within 0.15 %
+# (measured 0.10 % at most).
+@pytest.mark.parametrize("scene", ["fins2", "fins15", "tunnels2", "fins1"])
+def test_thin_parts_are_not_smoothed_through(scene):
+    raw, vs, kw = {"fins2": lambda: (_finned_ball(2.0, 0), 2.0, {}), "fins15": lambda: (_finned_ball(1.5, 1), 1.5, {}),
+                   "tunnels2": lambda: (_tunnels(2), 1.0, {"min_edge_mm": 3.0}),
+                   "fins1": lambda: (_finned_ball(1.0, 4, 0.4), 1.0, {})}[scene]()
+    from organlab.surface._repair import repair_mesh
+
+    fin = finish_surface(raw, voxel_size=vs, **kw)
+    raw, _ = repair_mesh(raw, speck_mm=3.0 * vs)  # the raw surface less its specks, as the promise is stated
+    names = [s["step"] for s in fin.steps]
+    assert "thin" in names and "stay_on_data" not in names and "slivers" not in names, names
+    assert fin.steps[names.index("thin")]["vertices_kept"] > 0
+    dev = surface_deviation(fin.mesh, raw, voxel_size=vs)
+    assert dev["max_voxels"] < 1.0 and dev["mean_voxels"] < 0.25, dev
+    assert fin.watertight and fin.final["min_angle_deg"] >= 20.0
+    assert abs(fin.volume_change_pct) < 0.15, fin.volume_change_pct
+
+
+def test_a_surface_without_thin_parts_is_not_touched():
+    """A ball (1 mm, a coverage field): smoothing takes no vertex through anything; no thin step, and
+    :func:`._thin.keep_thin` returns the smoothed surface itself."""
+    from organlab.surface._repair import smooth_mesh
+    from organlab.surface._thin import keep_thin
+
+    field, grid = _field("ball")
+    raw = mesh_from_field(field, grid)
+    fin = finish_surface(raw, voxel_size=1.0)
+    assert "thin" not in [s["step"] for s in fin.steps]
+    sm, _ = smooth_mesh(raw)
+    assert keep_thin(sm, raw) == (sm, 0)
