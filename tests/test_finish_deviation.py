@@ -406,3 +406,17 @@ def test_a_surface_without_thin_parts_is_not_touched():
     assert "thin" not in [s["step"] for s in fin.steps]
     sm, _ = smooth_mesh(raw)
     assert keep_thin(sm, raw) == (sm, 0)
+
+
+def test_a_cut_that_takes_whole_pieces_is_refused():
+    """cut_and_fill whose cut removes every face of the pieces it touches has nothing to fill: the mesh comes back
+    unchanged with 0 faces cut (before 9448c49 repair_mesh raised 'the mesh has no faces' on the empty rest; the
+    1 mm finned balls' shreds, seed 2 at 0.3 voxel half-thickness, did this inside finish_surface)."""
+    from organlab.surface._repair import cut_and_fill
+
+    grid = VoxelGrid(origin=(-12.0,) * 3, voxel_size=1.0, shape=(25, 25, 25))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    d = np.minimum(np.sqrt(x**2 + y**2 + z**2) - 7.0, np.sqrt((x - 10.0) ** 2 + y**2 + z**2) - 0.8)
+    two = mesh_from_field(np.clip(0.5 - d, 0.0, 1.0).astype(np.float32), grid)
+    out, n = cut_and_fill(two, np.array([[10.0, 0.0, 0.0]]), 2.5, speck_mm=3.0)  # the whole bead is in the cut
+    assert n == 0 and out is two
