@@ -161,8 +161,9 @@ def test_the_report_states_the_deviation_and_the_worst_view_iou_change(small_ses
 # voxels.  finish_surface's last step (``stay_on_data``, organlab/surface/_guard.py) puts the lost raw points back
 # as vertices and pulls the vertices still more than 0.9 voxel off back onto the raw surface, keeping the angle.
 
-def _finned_ball(voxel_size, seed):
-    """A 15 mm ball with three half-discs of radius 24 mm, 1-2 voxels thick (random planes), and its grid."""
+def _finned_occupancy(voxel_size, seed, half=None):
+    """A 15 mm ball with three half-discs of radius 24 mm, 1-2 voxels thick (random planes; ``half``: the
+    half-thickness in voxels, all three): the occupancy and its grid."""
     n = int(60 / voxel_size) + 1
     grid = VoxelGrid(origin=(-30.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
@@ -173,15 +174,31 @@ def _finned_ball(voxel_size, seed):
         d /= np.linalg.norm(d)
         e = np.cross(d, rng.normal(size=3))
         e /= np.linalg.norm(e)
-        body |= ((np.abs(x * d[0] + y * d[1] + z * d[2]) <= rng.uniform(0.5, 1.0) * voxel_size)
+        t = rng.uniform(0.5, 1.0) if half is None else half
+        body |= ((np.abs(x * d[0] + y * d[1] + z * d[2]) <= t * voxel_size)
                  & (x**2 + y**2 + z**2 <= 24.0**2) & (x * e[0] + y * e[1] + z * e[2] > 0))
-    return mesh_from_field(body, grid)
+    return body, grid
+
+
+def _finned_ball(voxel_size, seed, half=None):
+    """The surface of :func:`_finned_occupancy`."""
+    return mesh_from_field(*_finned_occupancy(voxel_size, seed, half))
+
+
+def _without_thin(monkeypatch):
+    """finish_surface as before the thin-part handling (._thin): no vertex put back after smoothing, every closest
+    point taken by the remesher's projections, whichever side of a thin part it is on."""
+    monkeypatch.setattr("organlab.surface._repair.keep_thin", lambda smoothed, raw: (smoothed, 0))
+    monkeypatch.setattr("organlab.surface._remesh.same_side", lambda surface, face, normals: np.ones(len(face), bool))
 
 
 # measured (before -> after the last step): seed 0 at 2 mm 3.4555 -> 0.8392 voxels, seed 1 at 1.5 mm (a
 # scene the step was not developed on) 1.0157 -> 0.7197; the smallest angles 20.23 and 20.48 degrees
 @pytest.mark.parametrize("voxel_size, seed", [(2.0, 0), (1.5, 1)])
-def test_finished_fins_stay_within_a_voxel(voxel_size, seed):
+def test_finished_fins_stay_within_a_voxel(voxel_size, seed, monkeypatch):
+    # the last step on the case it was made for: the thin-part handling (._thin) now keeps these fins within a voxel
+    # before it (test_thin_parts_are_not_smoothed_through), so it is switched off here
+    _without_thin(monkeypatch)
     raw = _finned_ball(voxel_size, seed)
     fin = finish_surface(raw, voxel_size=voxel_size)
     guard = [s for s in fin.steps if s["step"] == "stay_on_data"]
@@ -200,6 +217,40 @@ def test_finished_fins_stay_within_a_voxel(voxel_size, seed):
     assert fin.final["min_angle_deg"] >= 20.0
     assert fin.final["nonmanifold_edges"] == 0 and fin.final["boundary_edges"] == 0
     # the volume is the raw's (the whole finishing: measured -0.30 % and +0.03 %; the fins are a few voxels thin)
+    assert abs(fin.volume_change_pct) < 0.5, fin.volume_change_pct
+
+
+# Fins thinner than a voxel at 1 mm (0.7 and 0.8 voxel thick): the occupancy is a one-voxel layer whose voxels meet
+# diagonally, and on a cube face between two such voxels the bilinear saddle is 0.5, exactly the level.  Lewiner's
+# marching cubes resolved the tie one way in one cube and the other way in the next: 63 and 681 edges of four faces.
+# Repair then cut those faces out, the holes it could not close sent the surface down the open-surface path, and the
+# finished surface was 1.89 / 3.29 voxels off the raw one, 0.79 / 0.10 degrees, not closed, volume -48 % / -68 %.
+# Now such a surface is meshed again 1e-5 below the level (TIE_LEVEL), where every tie joins the two voxels.
+# Developed on seeds 0-2 (half-thickness 0.25-0.5 voxel); these seeds were not looked at before.  Measured after:
+# 0.601 / 0.568 voxel max, 0.128 mean, 21.62 / 21.41 degrees, volume -0.14 % / -0.04 %.  The bounds are the
+# promises (1 voxel, 0.25 mean, 20 degrees, closed and manifold) and the volume within 0.5 % (the broken surface
+# lost half of it).  Not yet kept: thinner fins, and some of these thicknesses on other seeds (their finished
+# surfaces are still up to 2.8 voxels off, with slivers on the fins: the remesher projects a vertex of one side of
+# a sheet a fraction of a voxel thick onto the other).
+@pytest.mark.parametrize("seed, half", [(6, 0.35), (5, 0.4)])
+def test_fins_thinner_than_a_voxel_at_1mm(seed, half):
+    from skimage.measure import marching_cubes
+
+    from organlab.surface import mesh_quality
+
+    body, grid = _finned_occupancy(1.0, seed, half)
+    raw = mesh_from_field(body, grid)
+    # the case is real: at the level itself, marching cubes gives edges of more than two faces
+    _, f, _, _ = marching_cubes(np.pad(body.astype(np.float32), 1), 0.5)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    assert (np.unique(e, axis=0, return_counts=True)[1] > 2).sum() > 50
+    q = mesh_quality(raw)  # the surface used is closed and manifold
+    assert q["nonmanifold_edges"] == q["boundary_edges"] == q["nonmanifold_vertices"] == 0
+    fin = finish_surface(raw, voxel_size=1.0)
+    dev = surface_deviation(fin.mesh, raw, voxel_size=1.0)
+    assert dev["max_voxels"] < 1.0 and dev["mean_voxels"] < 0.25, dev
+    assert fin.watertight and fin.final["min_angle_deg"] >= 20.0
+    assert fin.final["nonmanifold_edges"] == 0 and fin.final["boundary_edges"] == 0
     assert abs(fin.volume_change_pct) < 0.5, fin.volume_change_pct
 
 
@@ -248,7 +299,10 @@ def _tunnels(seed):
 # no last step.  The bounds: under the promised voxel with a margin (0.8), the volume within 0.05 % (a filled tunnel
 # is 1.4 %)
 @pytest.mark.parametrize("seed", [2, 4])
-def test_a_thin_wall_over_a_tunnel_is_not_cut_away(seed):
+def test_a_thin_wall_over_a_tunnel_is_not_cut_away(seed, monkeypatch):
+    # the cut on the case it was made for, the thin-part handling switched off (as above: with it, no face is left
+    # below the angle for the cut, test_thin_parts_are_not_smoothed_through)
+    _without_thin(monkeypatch)
     raw = _tunnels(seed)
     fin = finish_surface(raw, voxel_size=1.0, min_edge_mm=3.0)
     cut = [s for s in fin.steps if s["step"] == "slivers"]
@@ -278,3 +332,91 @@ def test_the_sliver_cut_keeps_the_pieces_it_does_not_touch():
     np.testing.assert_array_equal(np.sort(out.vertices[kept], axis=0), np.sort(two.vertices[bead], axis=0))
     # and the cut was filled: the volume within 1 % (measured -0.26 %, the fill a chord across the curved ball)
     assert abs(out.volume - two.volume) / two.volume < 0.01
+
+
+def test_marching_cubes_joins_voxels_that_meet_at_an_edge():
+    """Four voxels that meet at edges only (the smallest piece of a slanted one-voxel fin, seed 5, with such
+    edges): their cube faces' saddles are the level; the surface is closed, manifold and one piece (the ties taken
+    as joined), on the dense and the band path; a surface without such a tie is scikit-image's at the level."""
+    from skimage.measure import marching_cubes
+
+    from organlab.surface import mesh_quality
+    from tests.test_surface_scale import _band
+
+    grid = VoxelGrid(origin=(0.0, 0.0, 0.0), voxel_size=1.0, shape=(6, 6, 6))
+    occ = np.zeros(grid.shape, dtype=bool)
+    occ[tuple(np.array([[1, 1, 1], [1, 2, 2], [2, 0, 1], [2, 1, 2]]).T + 1)] = True
+    _, f, _, _ = marching_cubes(np.pad(occ.astype(np.float32), 1), 0.5)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    assert (np.unique(e, axis=0, return_counts=True)[1] > 2).any()  # the case is real
+    for field in (occ, _band(occ.astype(np.float32), grid, block=4)[0]):
+        m = mesh_from_field(field, grid)
+        q = mesh_quality(m)
+        assert q["nonmanifold_edges"] == q["boundary_edges"] == q["nonmanifold_vertices"] == 0, q
+        assert q["components"] == 1 and m.is_watertight
+        assert np.abs(m.vertices - np.round(m.vertices * 2) / 2).max() < 2e-5  # on the edge midpoints, 1e-5 off
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    ball = (x - 2.5) ** 2 + (y - 2.5) ** 2 + (z - 2.5) ** 2 <= 2.2**2
+    v, f, _, _ = marching_cubes(np.pad(ball.astype(np.float32), 1), 0.5)
+    m = mesh_from_field(ball, grid)
+    np.testing.assert_array_equal(m.vertices, v.astype(np.float64) - 1.0)
+    assert {tuple(sorted(t)) for t in m.faces.tolist()} == {tuple(sorted(t)) for t in f.tolist()}
+
+
+# ------------------------------------------------------------------ thin parts are not smoothed through (._thin)
+# Taubin smoothing moves each side of a sheet on its own; where a part is thinner than the staircase it relaxes, the
+# sides pass through each other, the remesher (starting from the smoothed surface, projecting by closest point)
+# puts vertices on the wrong side of the fin, and slivers are left that the later steps cut out or pull back.  Now
+# such vertices (and two rings around) get their raw places back before remeshing, and a projection onto the other
+# side of a thin part is refused.  Developed on the 1 mm finned balls (occupancy seeds 3, 4, 6; coverage fields);
+# the scenes of the two tests above were not used: they now meet the promises with neither the last step nor the
+# cut.  Measured against the raw surface less its specks (before, without the later steps' work as their tests
+# switch it off -> now): fins 2 mm seed 0: 3.46 voxels -> 0.559 max / 0.090 mean, 23.7 deg; 1.5 mm seed 1: 1.02 ->
+# 0.695 / 0.134, 27.0 deg; tunnels seed 2: faces below 20 deg left for the cut -> 0.382 / 0.030, 28.3 deg; 1 mm fins
+# 0.8 voxel thick (occupancy seed 4; finished before with every step: 2.80 voxels, 7.75 deg) -> 0.60 / 0.095, 21.3 deg.
+# Bounds: the promises, with no later step needed (one would hide a regression here); the volume within 0.15 %
+# (measured 0.10 % at most).
+@pytest.mark.parametrize("scene", ["fins2", "fins15", "tunnels2", "fins1"])
+def test_thin_parts_are_not_smoothed_through(scene):
+    raw, vs, kw = {"fins2": lambda: (_finned_ball(2.0, 0), 2.0, {}), "fins15": lambda: (_finned_ball(1.5, 1), 1.5, {}),
+                   "tunnels2": lambda: (_tunnels(2), 1.0, {"min_edge_mm": 3.0}),
+                   "fins1": lambda: (_finned_ball(1.0, 4, 0.4), 1.0, {})}[scene]()
+    from organlab.surface._repair import repair_mesh
+
+    fin = finish_surface(raw, voxel_size=vs, **kw)
+    raw, _ = repair_mesh(raw, speck_mm=3.0 * vs)  # the raw surface less its specks, as the promise is stated
+    names = [s["step"] for s in fin.steps]
+    assert "thin" in names and "stay_on_data" not in names and "slivers" not in names, names
+    assert fin.steps[names.index("thin")]["vertices_kept"] > 0
+    dev = surface_deviation(fin.mesh, raw, voxel_size=vs)
+    assert dev["max_voxels"] < 1.0 and dev["mean_voxels"] < 0.25, dev
+    assert fin.watertight and fin.final["min_angle_deg"] >= 20.0
+    assert abs(fin.volume_change_pct) < 0.15, fin.volume_change_pct
+
+
+def test_a_surface_without_thin_parts_is_not_touched():
+    """A ball (1 mm, a coverage field): smoothing takes no vertex through anything; no thin step, and
+    :func:`._thin.keep_thin` returns the smoothed surface itself."""
+    from organlab.surface._repair import smooth_mesh
+    from organlab.surface._thin import keep_thin
+
+    field, grid = _field("ball")
+    raw = mesh_from_field(field, grid)
+    fin = finish_surface(raw, voxel_size=1.0)
+    assert "thin" not in [s["step"] for s in fin.steps]
+    sm, _ = smooth_mesh(raw)
+    assert keep_thin(sm, raw) == (sm, 0)
+
+
+def test_a_cut_that_takes_whole_pieces_is_refused():
+    """cut_and_fill whose cut removes every face of the pieces it touches has nothing to fill: the mesh comes back
+    unchanged with 0 faces cut (before 9448c49 repair_mesh raised 'the mesh has no faces' on the empty rest; the
+    1 mm finned balls' shreds, seed 2 at 0.3 voxel half-thickness, did this inside finish_surface)."""
+    from organlab.surface._repair import cut_and_fill
+
+    grid = VoxelGrid(origin=(-12.0,) * 3, voxel_size=1.0, shape=(25, 25, 25))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    d = np.minimum(np.sqrt(x**2 + y**2 + z**2) - 7.0, np.sqrt((x - 10.0) ** 2 + y**2 + z**2) - 0.8)
+    two = mesh_from_field(np.clip(0.5 - d, 0.0, 1.0).astype(np.float32), grid)
+    out, n = cut_and_fill(two, np.array([[10.0, 0.0, 0.0]]), 2.5, speck_mm=3.0)  # the whole bead is in the cut
+    assert n == 0 and out is two

@@ -19,7 +19,7 @@ import numpy as np
 from ..bandfield import BandField
 from ..grid import VoxelGrid
 from ..mesh import Mesh
-from ._bandmesh import band_mesh
+from ._bandmesh import band_mesh, tie_level
 from ._classic_mc import classic_marching_cubes
 
 __all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vertices"]
@@ -65,18 +65,20 @@ def mesh_from_volume(volume: np.ndarray, grid: VoxelGrid, *, level: float = 0.5,
         raise ValueError("the volume has nothing above the iso-level: the model is empty")
     padded = np.pad(vol, 1, mode="constant", constant_values=min(0.0, float(vol.min())))
     s = grid.voxel_size
-    if method == "lewiner":
-        verts, faces, _, _ = marching_cubes(
-            padded, level=level, spacing=(s, s, s), method="lewiner", allow_degenerate=False
-        )
-    else:
-        verts, faces = classic_marching_cubes(padded, level, decider=method == "decider")
-        verts = verts * s
-    verts = verts.astype(np.float64) + (np.asarray(grid.origin) - s)
-    faces = faces.astype(np.int64)
-    mesh = Mesh(verts, faces)
-    if mesh.volume < 0:
-        mesh = Mesh(verts, faces[:, ::-1].copy())
+    origin = np.asarray(grid.origin) - s
+    for lev in (level, tie_level(level)):
+        if method == "lewiner":
+            verts, faces, _, _ = marching_cubes(
+                padded, level=lev, spacing=(s, s, s), method="lewiner", allow_degenerate=False
+            )
+        else:
+            verts, faces = classic_marching_cubes(padded, level, decider=method == "decider")
+            verts = verts * s
+        mesh = Mesh(verts.astype(np.float64) + origin, faces.astype(np.int64))
+        if mesh.volume < 0:
+            mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy())
+        if method != "lewiner" or not mesh.edge_counts()[1]:  # else a saddle exactly at the level: see TIE_LEVEL
+            break
     return mesh
 
 

@@ -35,6 +35,7 @@ from numba import njit
 
 from ..mesh import Mesh
 from ._deviation import _Surface, _surface
+from ._thin import same_side
 
 # ------------------------------------------------------------------ small geometry helpers
 
@@ -746,7 +747,11 @@ def _smart_relax(V, F, ref, bad, steps=3):
         n = _vertex_normals(Vl, Fl)
         c = _neighbour_mean(Vl, Fl)[lv] - Vl[lv]
         c -= np.einsum("ij,ij->i", c, n[lv])[:, None] * n[lv]
-        q = Vl[lv] + c if ref is None else ref.closest(Vl[lv] + c)[0]
+        if ref is None:
+            q = Vl[lv] + c
+        else:  # a closest point on the other side of a thin part is refused (._thin)
+            q, _, face = ref.closest(Vl[lv] + c)
+            q = np.where(same_side(ref, face, n[lv])[:, None], q, Vl[lv])
         before = _star_min(Vl, Fl, lv)
         W = Vl.copy()
         W[lv] = q
@@ -787,7 +792,7 @@ def _relax(V, F, H, ref, rsize, relax):
     # 4 candidate faces: a relaxation step moves a vertex a fraction of an edge, the next one corrects a miss
     q, dist, face = ref.closest(moved, k=4)
     # a vertex whose closest point is far from where it moved (another sheet of a thin part) stays
-    ok = dist <= 0.5 * H
+    ok = (dist <= 0.5 * H) & same_side(ref, face, n)  # nor one on the other side of a thin part (._thin)
     V = np.where(ok[:, None], q, V)
     H = np.where(ok, rsize[ref.f[face]].min(axis=1), H)
     return V, H
@@ -807,6 +812,7 @@ def fit_faces(mesh: Mesh, reference: Mesh, *, min_angle: float = 20.0, factor: f
     q, d, face = ref.closest(c)
     rn = np.cross(ref.v[ref.f[face, 1]] - ref.v[ref.f[face, 0]], ref.v[ref.f[face, 2]] - ref.v[ref.f[face, 0]])
     gap = np.einsum("ij,ij->i", q - c, rn) / (np.linalg.norm(rn, axis=1) + 1e-300)  # > 0: the face is inside
+    gap[~same_side(ref, face, np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]))] = 0.0  # ._thin
     n = _vertex_normals(V, F)
     w = sum(np.bincount(F[:, i], minlength=len(V)) for i in range(3))
     g = sum(np.bincount(F[:, i], gap, len(V)) for i in range(3)) / np.maximum(w, 1)

@@ -31,6 +31,7 @@ from ._guard import keep_on_data, near_deviation
 from ._mesh import Mesh
 from ._quality import _face_figures, _moved, boundary_loops, has_null_faces, mesh_quality, triangle_angles
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
+from ._thin import keep_thin, same_side, vertex_normal_sums
 from ._voronoi import vertex_normals
 
 
@@ -415,10 +416,14 @@ STAIRCASE_VOXELS = 0.06
 
 
 def _staircase(smoothed, raw, voxel_size):
-    """True when Taubin smoothing moved ``raw`` off itself as it does an occupancy's staircase."""
+    """``(staircase, thin)``: True when Taubin smoothing moved ``raw`` off itself as it does an occupancy's
+    staircase; True when it took a vertex through a thin part of it (:func:`._thin.crossed`), from the same
+    sample of the smoothed vertices."""
     step = max(1, len(smoothed.vertices) // 5000)
-    _, d, _ = _surface(raw).closest(smoothed.vertices[::step])
-    return bool(d.mean() > STAIRCASE_VOXELS * voxel_size)
+    sub = np.arange(0, len(smoothed.vertices), step)
+    ref = _surface(raw)
+    _, d, face = ref.closest(smoothed.vertices[sub])
+    return bool(d.mean() > STAIRCASE_VOXELS * voxel_size), bool((~same_side(ref, face, vertex_normal_sums(ref)[sub])).any())
 
 
 def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, reference):
@@ -612,8 +617,14 @@ def finish_surface(
         q = mesh_quality(out)
         if not (q["boundary_edges"] or q["nonmanifold_edges"] or q["nonmanifold_vertices"] or q["misoriented_edges"]):
             ref = repaired
-            if smooth and repaired is not out and len(repaired.faces) and _staircase(out, repaired, float(voxel_size)):
-                ref = out  # an occupancy's staircase is not data: the smoothed surface is the one to stay on
+            if smooth and repaired is not out and len(repaired.faces):
+                stair, thin = _staircase(out, repaired, float(voxel_size))
+                if thin:  # smoothing took vertices through a thin part: they go back to their raw places (._thin)
+                    smoothed = out
+                    out, n = keep_thin(smoothed, repaired)
+                    steps.append(_step("thin", smoothed, out, vertices_kept=n))
+                if stair:
+                    ref = out  # an occupancy's staircase is not data: the smoothed surface is the one to stay on
             out, recs = _adaptive_step(out, float(remesh), float(voxel_size), min_angle, keep_volume, ref)
         else:  # an open or non-manifold surface (repair=False): pymeshlab's remeshing, folds cut out
             out, recs = _remesh_step(out, float(remesh), voxel_size, feature_deg, min_angle, keep_volume)
@@ -735,6 +746,8 @@ def cut_and_fill(mesh, seeds, radius_mm, *, speck_mm, iterations=20):
     f, nv = np.asarray(mesh.faces, dtype=np.int64), len(mesh.vertices)
     piece = _pieces(f, nv)[1][f[:, 0]]
     touched = np.isin(piece, piece[~keep])
+    if not (keep & touched).any():  # the cut takes whole pieces (a fin's shreds): nothing of them to fill
+        return mesh, 0
     rep, _ = repair_mesh(Mesh(mesh.vertices, f[keep & touched]), speck_mm=speck_mm)
     if not touched.all():
         used, rest = np.unique(f[~touched], return_inverse=True)
