@@ -119,6 +119,22 @@ _ROUTE_DIRECT = 200_000
 _CORRIDOR_BLOCKS = 3
 
 
+@njit(cache=True, nogil=True)
+def _block_min(cost):
+    """The smallest value of each 2 x 2 x 2 block of ``cost`` (nx, ny, nz) float64, the blocks past an odd
+    edge holding fewer voxels (``np.pad(cost, ..., constant_values=np.inf)``'s blocks' ``min``, without the
+    padded copy: 0.25 mm sample 0.11 -> 0.01 s)."""
+    nx, ny, nz = cost.shape
+    out = np.full(((nx + 1) // 2, (ny + 1) // 2, (nz + 1) // 2), np.inf)
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                v = cost[i, j, k]
+                if v < out[i >> 1, j >> 1, k >> 1]:
+                    out[i >> 1, j >> 1, k >> 1] = v
+    return out
+
+
 def _route(cost, a, b):
     """The minimal-cost path from ``a`` to ``b`` through ``cost`` (26 neighbours, steps weighted by their
     length): ``skimage.graph.route_through_array``'s path, ``(K, 3)`` int.
@@ -140,10 +156,7 @@ def _route(cost, a, b):
     if cost.size <= _ROUTE_DIRECT:
         return direct(cost, a, b)
     shape = np.array(cost.shape)
-    padded = np.pad(cost, [(0, n % 2) for n in shape], constant_values=np.inf)
-    S = np.array(padded.shape) // 2
-    coarse = padded.reshape(S[0], 2, S[1], 2, S[2], 2).min(axis=(1, 3, 5))
-    del padded
+    coarse = _block_min(cost)
     on = np.zeros(coarse.shape, dtype=bool)
     on[tuple(_route(coarse, np.asarray(a) // 2, np.asarray(b) // 2).T)] = True
     ball = ndimage.generate_binary_structure(3, 1)
@@ -935,8 +948,9 @@ def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     u = np.array([0.0, 0.0, 1.0]) if not n > 0 else u / n
     proj = c @ u
     order = np.argsort(proj, kind="stable")
+    of, ou = order[flag[order]], order[~flag[order]]
     count, amb = _sac_count(np.ascontiguousarray(inside), np.asarray(origin, dtype=np.float64), float(vs), c,
-                            u, proj[order], order, flag)
+                            u, proj[order], order, flag, proj[of], of, proj[ou], ou)
     if len(amb):
         from scipy.spatial import cKDTree
 
@@ -945,12 +959,38 @@ def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     return float(count * vs**3)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _nearest_along(c, sproj, order, x, y, z, pp):
+    """Squared distance from ``(x, y, z)`` (``pp`` along ``u``) to the point of ``c[order]`` nearest along
+    ``u`` (``sproj`` their sorted coordinates), and a lower bound of the squared distance to all of them
+    (the gap along ``u``, less 1e-9 for its rounding); ``inf``, ``inf`` when there are none."""
+    n = sproj.shape[0]
+    if n == 0:
+        return np.inf, np.inf
+    h = np.searchsorted(sproj, pp)
+    if h >= n or (h > 0 and pp - sproj[h - 1] <= sproj[h] - pp):
+        h -= 1
+    m = order[h]
+    dx = x - c[m, 0]
+    dy = y - c[m, 1]
+    dz = z - c[m, 2]
+    gap = max(abs(pp - sproj[h]) - 1e-9, 0.0)
+    return dx * dx + dy * dy + dz * dz, gap * gap
+
+
 @njit(cache=True, nogil=True)
-def _sac_count(inside, origin, vs, c, u, sproj, order, flag):
+def _sac_count(inside, origin, vs, c, u, sproj, order, flag, fproj, forder, uproj, uorder):
     """The inside voxels (at ``origin + index * vs``) whose nearest point of ``c`` (K, 3) is flagged, and
     the voxels (M, 3) int64 whose nearest flagged and unflagged points are too near to tell (see
     :func:`_sac_volume`); ``sproj`` the points' sorted coordinates along the unit vector ``u``, ``order``
-    their indices."""
+    their indices; ``fproj``, ``forder`` and ``uproj``, ``uorder`` the same of the flagged and the
+    unflagged points alone.
+
+    A voxel first tries the flagged and the unflagged point nearest to it along ``u``: when one is
+    nearer (by the same 1e-9 margin) than the other set's distance along ``u`` alone (a lower bound
+    of its distance), that set holds the nearest point; the others (the voxels near the sac's end
+    planes) scan all points within reach.
+    """
     nx, ny, nz = inside.shape
     K = c.shape[0]
     count = 0
@@ -965,6 +1005,13 @@ def _sac_count(inside, origin, vs, c, u, sproj, order, flag):
                     continue
                 z = origin[2] + k * vs
                 pp = x * u[0] + y * u[1] + z * u[2]
+                df, lbf = _nearest_along(c, fproj, forder, x, y, z, pp)
+                du, lbu = _nearest_along(c, uproj, uorder, x, y, z, pp)
+                if df * (1.0 + 1e-9) + 1e-300 < lbu:
+                    count += 1
+                    continue
+                if du * (1.0 + 1e-9) + 1e-300 < lbf:
+                    continue
                 hi = np.searchsorted(sproj, pp)
                 lo = hi - 1
                 din = np.inf
