@@ -52,7 +52,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--session", default=str(ROOT / "sample_sessions" / "aaa_phantom"))
     ap.add_argument("--voxel-sizes", type=float, nargs="+", default=[1.0, 0.25])
-    ap.add_argument("--against", default="dc59702", help="git revision of the old _aaa.py (default: before issue 24's AAA work)")
+    ap.add_argument("--against", default="dc59702",
+                    help="git revision of the old _aaa.py (default: before issue 24's AAA measures work)")
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
 

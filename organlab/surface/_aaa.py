@@ -113,8 +113,10 @@ def _end_point(idx, s, top, slab):
     return tuple(idx[np.argmin(((idx - c) ** 2).sum(axis=1))])
 
 
-#: Boxes of more voxels than this are routed through a corridor about a coarser path (:func:`_route`).
-_ROUTE_DIRECT = 200_000
+#: Boxes of more voxels than this are routed through a corridor about a coarser path (:func:`_route`):
+#: 200 000 before; at 50 000 the 1 mm sample's coarse level is routed in a corridor too (its route
+#: 0.038 -> 0.027 s CPU, 0.25 mm 0.089 -> 0.077 s; the same paths at 1 and 0.25 mm and in the tests).
+_ROUTE_DIRECT = 50_000
 #: The corridor's half-width in coarse (2 x 2 x 2) blocks; the path must keep one block inside it.
 _CORRIDOR_BLOCKS = 3
 
@@ -714,9 +716,28 @@ def _blk(i, B, sh):
 
 @njit(cache=True, nogil=True, inline="always")
 def _trilinear_at(states, index, values, B, sh, x, y, z, i0, j0, k0):
-    """``_sampling._trilinear`` at ``(x, y, z)`` of cell ``(i0, j0, k0)``: the same products, sums and order."""
+    """``_sampling._trilinear`` at ``(x, y, z)`` of cell ``(i0, j0, k0)``: the same products, sums and order
+    (the 8 voxels read from one band block's values when they lie in one)."""
     fx, fy, fz = x - i0, y - j0, z - k0
     acc = 0.0
+    bx, by, bz = _blk(i0, B, sh), _blk(j0, B, sh), _blk(k0, B, sh)
+    ox, oy, oz = i0 - bx * B, j0 - by * B, k0 - bz * B
+    if ox + 1 < B and oy + 1 < B and oz + 1 < B and states[bx, by, bz] == 2:
+        blk = values[index[bx, by, bz]]
+        for di in range(2):
+            wx = fx if di else 1.0 - fx
+            if wx == 0.0:
+                continue
+            for dj in range(2):
+                wy = fy if dj else 1.0 - fy
+                if wy == 0.0:
+                    continue
+                for dk in range(2):
+                    wz = fz if dk else 1.0 - fz
+                    if wz == 0.0:
+                        continue
+                    acc += wx * wy * wz * blk[ox + di, oy + dj, oz + dk]
+        return acc
     for di in range(2):
         wx = fx if di else 1.0 - fx
         if wx == 0.0:
