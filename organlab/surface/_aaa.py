@@ -180,30 +180,45 @@ def _route(cost, a, b):
 
 
 @njit(cache=True, nogil=True)
-def _envelope(f, n, d, v, z):
-    """``d[j] = min_q f[q] + (j - q)^2`` for ``j < n`` (squared distances, exact integers in float64): the
-    lower envelope of parabolas (Felzenszwalb and Huttenlocher 2012), ``v``, ``z`` scratch of n and n + 1."""
+def _envelope_runs(f, n, d, v, z, qs, fs):
+    """``d[j] = min_q f[q] + (j - q)^2`` for ``j < n`` (squared distances, exact integers in float64): the lower
+    envelope of parabolas (Felzenszwalb and Huttenlocher 2012), ``v``, ``z`` scratch of n and n + 1, of
+    ``f`` >= 0 whose runs of zeros are given by their ends: a point off a run of
+    zeros is nearest, in the run, to one of its ends, and a point in it has ``d = 0``; so the envelope
+    of the nonzero values and the runs' ends gives the same squared distances (exact integers) with
+    fewer parabolas (the box's outside: 0.25 mm sample, two thirds of the centreline box; its distances
+    0.113 -> 0.089 s CPU).  ``qs``, ``fs`` scratch of n."""
+    m = 0
+    for q in range(n):
+        if f[q] != 0.0 or q == 0 or q == n - 1 or f[q - 1] != 0.0 or f[q + 1] != 0.0:
+            qs[m] = q
+            fs[m] = f[q]
+            m += 1
     k = 0
     v[0] = 0
     z[0] = -np.inf
     z[1] = np.inf
-    for q in range(1, n):
+    for t in range(1, m):
+        q = qs[t]
         while True:  # z[0] = -inf ends it at k = 0 at the latest
-            p = v[k]
-            s = ((f[q] + q * q) - (f[p] + p * p)) / (2.0 * q - 2.0 * p)
+            p = qs[v[k]]
+            s = ((fs[t] + q * q) - (fs[v[k]] + p * p)) / (2.0 * q - 2.0 * p)
             if s > z[k]:
                 break
             k -= 1
         k += 1
-        v[k] = q
+        v[k] = t
         z[k] = s
         z[k + 1] = np.inf
     k = 0
     for j in range(n):
+        if f[j] == 0.0:
+            d[j] = 0.0
+            continue
         while z[k + 1] < j:
             k += 1
-        p = v[k]
-        d[j] = f[p] + (j - p) * (j - p)
+        p = qs[v[k]]
+        d[j] = fs[v[k]] + (j - p) * (j - p)
 
 
 @njit(cache=True, nogil=True)
@@ -234,20 +249,28 @@ def _distance_sq(inside):
     d = np.empty(m)
     v = np.empty(m, dtype=np.int64)
     z = np.empty(m + 1)
+    qs = np.empty(m, dtype=np.int64)
+    fs = np.empty(m)
     for i in range(nx):  # along y
         for k in range(nz):
+            nonzero = False
             for j in range(ny):
                 f[j] = g[i, j, k]
-            _envelope(f, ny, d, v, z)
-            for j in range(ny):
-                g[i, j, k] = d[j]
+                nonzero |= f[j] != 0.0
+            if nonzero:  # a line of zeros stays zeros
+                _envelope_runs(f, ny, d, v, z, qs, fs)
+                for j in range(ny):
+                    g[i, j, k] = d[j]
     for j in range(ny):  # along x
         for k in range(nz):
+            nonzero = False
             for i in range(nx):
                 f[i] = g[i, j, k]
-            _envelope(f, nx, d, v, z)
-            for i in range(nx):
-                g[i, j, k] = d[i]
+                nonzero |= f[i] != 0.0
+            if nonzero:
+                _envelope_runs(f, nx, d, v, z, qs, fs)
+                for i in range(nx):
+                    g[i, j, k] = d[i]
     return g
 
 
