@@ -925,15 +925,41 @@ def measure_aaa(
 def _band_box(field, level):
     """Voxel bounds ``lo`` (inclusive), ``hi`` (exclusive) of the blocks holding values above ``level``; None if none."""
     B = field.block
-    hot = field.states == 1
-    band = np.argwhere(field.states == 2)
-    if len(band):
-        rows = field.index[tuple(band.T)]
-        hot[tuple(band[(field.values[rows] > level).any(axis=(1, 2, 3))].T)] = True
-    if not hot.any():
+    lo, hi = _hot_blocks(field.states, field.index, field.values, float(level))
+    if lo[0] > hi[0]:
         return None, None
-    idx = np.argwhere(hot)
-    return idx.min(axis=0) * B, np.minimum((idx.max(axis=0) + 1) * B, field.shape)
+    return lo * B, np.minimum((hi + 1) * B, field.shape)
+
+
+@njit(cache=True, nogil=True)
+def _hot_blocks(states, index, values, level):
+    """Smallest and largest block indices (3,) of the inside blocks and the band blocks holding a value
+    above ``level`` (one pass over the blocks, a band block's values until the first above; at 0.25 mm
+    0.035 -> 0.003 s); ``lo > hi`` when there are none."""
+    nx, ny, nz = states.shape
+    lo = np.array([nx, ny, nz], dtype=np.int64)
+    hi = np.array([-1, -1, -1], dtype=np.int64)
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                st = states[i, j, k]
+                hot = st == 1
+                if st == 2:
+                    blk = values[index[i, j, k]]
+                    for a in range(blk.shape[0]):
+                        for b in range(blk.shape[1]):
+                            for c in range(blk.shape[2]):
+                                if blk[a, b, c] > level:
+                                    hot = True
+                                    break
+                            if hot:
+                                break
+                        if hot:
+                            break
+                if hot:
+                    lo[0], lo[1], lo[2] = min(lo[0], i), min(lo[1], j), min(lo[2], k)
+                    hi[0], hi[1], hi[2] = max(hi[0], i), max(hi[1], j), max(hi[2], k)
+    return lo, hi
 
 
 def _measures(c, arc, sections, inside, origin, vs, sac_factor, params):
