@@ -794,7 +794,9 @@ def _sections(sample, level, planes, coarse=4):
     Every plane is sampled every ``coarse`` pixels first; the contour is then traced at full
     resolution in the window around the coarse one only (2 coarse pixels of margin: the same
     pixels, so the same contour as on the whole plane, which is sampled when the contour reaches
-    the margin or the coarse sampling found none).  All planes share each sampling call.
+    the margin or the coarse sampling found none).  All planes share each sampling call.  The windows
+    are part of the result's last bits (a window's contour is offset back by adding ``lo``: every 8th
+    pixel for the coarse pass at 0.25 mm moved 130 of the sample's equivalent diameters by an ulp).
     """
     centres = [np.array([[(len(p.g) - 1) / 2] * 2]) for p in planes]
     rough = _sample_planes(sample, planes, [(0, len(p.g), 0, len(p.g), coarse) for p in planes], level)
@@ -1009,7 +1011,8 @@ def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     their order along the centreline's chord (a point farther along it than the nearest so far
     cannot be nearer); a voxel whose two are within 1e-9 of each other (relative, squared: rounding
     could order them either way) goes to the tree, so its tie breaks as the tree's.  The same count
-    (sample, 0.25 mm: 1.3 M voxels, 0.86 -> 0.07 s CPU, without the voxels' (N, 3) coordinates).
+    (sample, 0.25 mm: 1.3 M voxels, 0.86 s CPU on two threads -> 0.09 s on one, without the voxels' (N, 3)
+    coordinates; 1 mm: 0.074 -> 0.016 s).
     """
     flag = (arc >= s0) & (arc <= s1)
     c = np.ascontiguousarray(c, dtype=np.float64)
