@@ -737,7 +737,7 @@ def _blk(i, B, sh):
     return i >> sh if sh >= 0 else i // B
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _trilinear_at(states, index, values, B, sh, x, y, z, i0, j0, k0):
     """``_sampling._trilinear`` at ``(x, y, z)`` of cell ``(i0, j0, k0)``: the same products, sums and order
     (the 8 voxels read from one band block's values when they lie in one)."""
@@ -1032,7 +1032,7 @@ def _sac_volume(inside, origin, vs, c, arc, s0, s1):
     return float(count * vs**3)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _nearest_along(c, sproj, order, x, y, z, pp):
     """Squared distance from ``(x, y, z)`` (``pp`` along ``u``) to the point of ``c[order]`` nearest along
     ``u`` (``sproj`` their sorted coordinates), and a lower bound of the squared distance to all of them
