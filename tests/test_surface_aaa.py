@@ -123,7 +123,7 @@ def test_mesh_command_on_a_result_folder(rec, tmp_path, capsys):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_centreline_route_in_a_corridor_is_skimages_path(seed):
-    """The corridor search (``_route``, boxes above 200 000 voxels) finds route_through_array's own path.
+    """The corridor search (``_route``, boxes above ``_ROUTE_DIRECT`` voxels) finds route_through_array's own path.
 
     A bent tube of random width with a random bulge (not the sample: a scene the corridor's width was
     not chosen on), cost 1 / distance^2 as the centreline's, plus noise so that ties are rare.
@@ -136,7 +136,7 @@ def test_centreline_route_in_a_corridor_is_skimages_path(seed):
     from organlab.surface import _aaa
 
     rng = np.random.default_rng(seed)
-    shape = (150, 70, 70)  # 735 000 voxels: one coarse level (92 000 blocks), the corridor 34-44 voxels wide
+    shape = (150, 70, 70)  # 735 000 voxels: two coarse levels (92 000 and 11 500 blocks), the corridor 34-44 voxels wide
     x, y, z = np.meshgrid(*(np.arange(n, dtype=float) for n in shape), indexing="ij")
     cy = 35 + 12 * np.sin(x / rng.uniform(20, 40) + rng.uniform(0, 6))
     cz = 35 + 10 * np.cos(x / rng.uniform(20, 40))

@@ -114,10 +114,28 @@ def _end_point(idx, s, top, slab):
     return tuple(idx[np.argmin(((idx - c) ** 2).sum(axis=1))])
 
 
-#: Boxes of more voxels than this are routed through a corridor about a coarser path (:func:`_route`).
-_ROUTE_DIRECT = 200_000
+#: Boxes of more voxels than this are routed through a corridor about a coarser path (:func:`_route`):
+#: 200 000 before; at 50 000 the 1 mm sample's coarse level is routed in a corridor too (its route
+#: 0.038 -> 0.027 s CPU, 0.25 mm 0.089 -> 0.077 s; the same paths at 1 and 0.25 mm and in the tests).
+_ROUTE_DIRECT = 50_000
 #: The corridor's half-width in coarse (2 x 2 x 2) blocks; the path must keep one block inside it.
 _CORRIDOR_BLOCKS = 3
+
+
+@njit(cache=True, nogil=True)
+def _block_min(cost):
+    """The smallest value of each 2 x 2 x 2 block of ``cost`` (nx, ny, nz) float64, the blocks past an odd
+    edge holding fewer voxels (``np.pad(cost, ..., constant_values=np.inf)``'s blocks' ``min``, without the
+    padded copy: 0.25 mm sample 0.11 -> 0.01 s)."""
+    nx, ny, nz = cost.shape
+    out = np.full(((nx + 1) // 2, (ny + 1) // 2, (nz + 1) // 2), np.inf)
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                v = cost[i, j, k]
+                if v < out[i >> 1, j >> 1, k >> 1]:
+                    out[i >> 1, j >> 1, k >> 1] = v
+    return out
 
 
 def _route(cost, a, b):
@@ -141,10 +159,7 @@ def _route(cost, a, b):
     if cost.size <= _ROUTE_DIRECT:
         return direct(cost, a, b)
     shape = np.array(cost.shape)
-    padded = np.pad(cost, [(0, n % 2) for n in shape], constant_values=np.inf)
-    S = np.array(padded.shape) // 2
-    coarse = padded.reshape(S[0], 2, S[1], 2, S[2], 2).min(axis=(1, 3, 5))
-    del padded
+    coarse = _block_min(cost)
     on = np.zeros(coarse.shape, dtype=bool)
     on[tuple(_route(coarse, np.asarray(a) // 2, np.asarray(b) // 2).T)] = True
     ball = ndimage.generate_binary_structure(3, 1)
@@ -166,30 +181,45 @@ def _route(cost, a, b):
 
 
 @njit(cache=True, nogil=True)
-def _envelope(f, n, d, v, z):
-    """``d[j] = min_q f[q] + (j - q)^2`` for ``j < n`` (squared distances, exact integers in float64): the
-    lower envelope of parabolas (Felzenszwalb and Huttenlocher 2012), ``v``, ``z`` scratch of n and n + 1."""
+def _envelope_runs(f, n, d, v, z, qs, fs):
+    """``d[j] = min_q f[q] + (j - q)^2`` for ``j < n`` (squared distances, exact integers in float64): the lower
+    envelope of parabolas (Felzenszwalb and Huttenlocher 2012), ``v``, ``z`` scratch of n and n + 1, of
+    ``f`` >= 0 whose runs of zeros are given by their ends: a point off a run of
+    zeros is nearest, in the run, to one of its ends, and a point in it has ``d = 0``; so the envelope
+    of the nonzero values and the runs' ends gives the same squared distances (exact integers) with
+    fewer parabolas (the box's outside: 0.25 mm sample, two thirds of the centreline box; its distances
+    0.113 -> 0.089 s CPU).  ``qs``, ``fs`` scratch of n."""
+    m = 0
+    for q in range(n):
+        if f[q] != 0.0 or q == 0 or q == n - 1 or f[q - 1] != 0.0 or f[q + 1] != 0.0:
+            qs[m] = q
+            fs[m] = f[q]
+            m += 1
     k = 0
     v[0] = 0
     z[0] = -np.inf
     z[1] = np.inf
-    for q in range(1, n):
+    for t in range(1, m):
+        q = qs[t]
         while True:  # z[0] = -inf ends it at k = 0 at the latest
-            p = v[k]
-            s = ((f[q] + q * q) - (f[p] + p * p)) / (2.0 * q - 2.0 * p)
+            p = qs[v[k]]
+            s = ((fs[t] + q * q) - (fs[v[k]] + p * p)) / (2.0 * q - 2.0 * p)
             if s > z[k]:
                 break
             k -= 1
         k += 1
-        v[k] = q
+        v[k] = t
         z[k] = s
         z[k + 1] = np.inf
     k = 0
     for j in range(n):
+        if f[j] == 0.0:
+            d[j] = 0.0
+            continue
         while z[k + 1] < j:
             k += 1
-        p = v[k]
-        d[j] = f[p] + (j - p) * (j - p)
+        p = qs[v[k]]
+        d[j] = fs[v[k]] + (j - p) * (j - p)
 
 
 @njit(cache=True, nogil=True)
@@ -220,20 +250,28 @@ def _distance_sq(inside):
     d = np.empty(m)
     v = np.empty(m, dtype=np.int64)
     z = np.empty(m + 1)
+    qs = np.empty(m, dtype=np.int64)
+    fs = np.empty(m)
     for i in range(nx):  # along y
         for k in range(nz):
+            nonzero = False
             for j in range(ny):
                 f[j] = g[i, j, k]
-            _envelope(f, ny, d, v, z)
-            for j in range(ny):
-                g[i, j, k] = d[j]
+                nonzero |= f[j] != 0.0
+            if nonzero:  # a line of zeros stays zeros
+                _envelope_runs(f, ny, d, v, z, qs, fs)
+                for j in range(ny):
+                    g[i, j, k] = d[j]
     for j in range(ny):  # along x
         for k in range(nz):
+            nonzero = False
             for i in range(nx):
                 f[i] = g[i, j, k]
-            _envelope(f, nx, d, v, z)
-            for i in range(nx):
-                g[i, j, k] = d[i]
+                nonzero |= f[i] != 0.0
+            if nonzero:
+                _envelope_runs(f, nx, d, v, z, qs, fs)
+                for i in range(nx):
+                    g[i, j, k] = d[i]
     return g
 
 
@@ -403,10 +441,12 @@ def _plane_indices(C, E1, E2, G, goff, I, J, origin, vs, out):
                 k += 1
 
 
-def _sample_planes(sample, planes, windows):
+def _sample_planes(sample, planes, windows, level=None):
     """The field on each plane's window ``(i0, i1, j0, j1, step)`` of pixels, in one sampling call.
 
-    Returns a list of ``(len(range(i0, i1, step)), len(range(j0, j1, step)))`` float64 images.
+    Returns a list of ``(len(range(i0, i1, step)), len(range(j0, j1, step)))`` float64 images.  With
+    ``level`` on a band field, only what the ``level`` contours read is the field's value (see
+    :func:`_band_planes`): the same contours.
     """
     if not planes:
         return []
@@ -414,16 +454,165 @@ def _sample_planes(sample, planes, windows):
     J = np.array([(w[2], w[3], w[4]) for w in windows], dtype=np.int64).reshape(-1, 3)
     shapes = [(len(range(*i)), len(range(*j))) for i, j in zip(I, J)]
     goff = np.cumsum([0] + [len(p.g) for p in planes[:-1]]).astype(np.int64)
-    ijk = np.empty((sum(a * b for a, b in shapes), 3))
-    _plane_indices(np.array([p.c for p in planes], dtype=np.float64), np.array([p.e1 for p in planes]),
-                   np.array([p.e2 for p in planes]), np.concatenate([p.g for p in planes]), goff, I, J,
-                   np.asarray(sample.origin, dtype=np.float64), float(sample.voxel_size), ijk)
-    vals = sample.at_indices(ijk)
+    args = (np.array([p.c for p in planes], dtype=np.float64), np.array([p.e1 for p in planes]),
+            np.array([p.e2 for p in planes]), np.concatenate([p.g for p in planes]), goff, I, J,
+            np.asarray(sample.origin, dtype=np.float64), float(sample.voxel_size))
+    n = sum(a * b for a, b in shapes)
+    if sample.band and level is not None:
+        f = sample.volume
+        vals = np.empty(n)
+        B = int(f.block)
+        sh = B.bit_length() - 1 if B & (B - 1) == 0 else -1  # blocks of 2**sh voxels: shifts, not divisions
+        _band_planes(*args, f.states, f.index, f.values, B, sh, *f.shape, sample.cval, float(level), vals)
+    else:
+        ijk = np.empty((n, 3))
+        _plane_indices(*args, ijk)
+        vals = sample.at_indices(ijk)
     out, k = [], 0
     for a, b in shapes:
         out.append(vals[k : k + a * b].reshape(a, b))
         k += a * b
     return out
+
+
+#: Margin about the level within which a pixel's side is never taken from its blocks' states.
+_SIDE_MARGIN = 1e-6
+
+
+@njit(cache=True, nogil=True)
+def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, index, values, B, sh, nx, ny, nz, cval, level, out):
+    """:func:`_plane_indices` then ``FieldSampler.at_indices`` on a band field, for the ``level`` contours.
+
+    A pixel whose 8 voxels lie in inside (1.5) or outside (-0.5) blocks of one state is on that
+    state's side of ``level`` (its trilinear value is a weighted mean of equal values: within 1e-15 of
+    it); it gets that value (1.5 or -0.5) unless a pixel it shares a square with may lie on the other
+    side, when it gets the field's value as every other pixel does.  Marching squares reads the values
+    of the squares with corners on both sides only (each corner then shares the square with one of
+    the other side), so its contours are those of the field's values, point for point; the pixels
+    off the surface skip the 8 reads and the interpolation.  Values: ``_trilinear``'s operations in
+    its order (the same bits).
+    """
+    above_in = 1.5 > level + _SIDE_MARGIN
+    below_in = 1.5 < level - _SIDE_MARGIN
+    above_out = -0.5 > level + _SIDE_MARGIN
+    below_out = -0.5 < level - _SIDE_MARGIN
+    k = 0
+    for p in range(C.shape[0]):
+        ni = len(range(I[p, 0], I[p, 1], I[p, 2]))
+        nj = len(range(J[p, 0], J[p, 1], J[p, 2]))
+        side = np.zeros((ni, nj), dtype=np.int8)  # 0: the field's value; 1 above, -1 below (a state's value)
+        cls = np.zeros((ni, nj), dtype=np.int8)  # 1 above, -1 below, 0 within the margin of the level
+        for a in range(ni):
+            u = G[goff[p] + I[p, 0] + a * I[p, 2]]
+            for b in range(nj):
+                w = G[goff[p] + J[p, 0] + b * J[p, 2]]
+                x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
+                y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
+                z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                q = k + a * nj + b
+                if not (0.0 <= x <= nx - 1 and 0.0 <= y <= ny - 1 and 0.0 <= z <= nz - 1):
+                    out[q] = cval
+                    cls[a, b] = 1 if cval > level + _SIDE_MARGIN else (-1 if cval < level - _SIDE_MARGIN else 0)
+                    continue
+                i0 = min(int(x), nx - 2) if nx > 1 else 0
+                j0 = min(int(y), ny - 2) if ny > 1 else 0
+                k0 = min(int(z), nz - 2) if nz > 1 else 0
+                bx0, by0, bz0 = _blk(i0, B, sh), _blk(j0, B, sh), _blk(k0, B, sh)
+                bx1 = _blk(i0 + 1, B, sh) if nx > 1 else bx0
+                by1 = _blk(j0 + 1, B, sh) if ny > 1 else by0
+                bz1 = _blk(k0 + 1, B, sh) if nz > 1 else bz0
+                s = states[bx0, by0, bz0]
+                if s != 2 and (states[bx1, by0, bz0] == s and states[bx0, by1, bz0] == s and states[bx1, by1, bz0] == s
+                               and states[bx0, by0, bz1] == s and states[bx1, by0, bz1] == s
+                               and states[bx0, by1, bz1] == s and states[bx1, by1, bz1] == s):
+                    if s == 1 and (above_in or below_in):
+                        side[a, b] = cls[a, b] = 1 if above_in else -1
+                        out[q] = 1.5
+                        continue
+                    if s == 0 and (above_out or below_out):
+                        side[a, b] = cls[a, b] = 1 if above_out else -1
+                        out[q] = -0.5
+                        continue
+                v = _trilinear_at(states, index, values, B, sh, x, y, z, i0, j0, k0)
+                out[q] = v
+                cls[a, b] = 1 if v > level + _SIDE_MARGIN else (-1 if v < level - _SIDE_MARGIN else 0)
+        for a in range(ni - 1):  # the squares whose corners may lie on both sides: their state-valued corners
+            for b in range(nj - 1):
+                c = cls[a, b]
+                if c != 0 and cls[a, b + 1] == c and cls[a + 1, b] == c and cls[a + 1, b + 1] == c:
+                    continue
+                for da in range(2):
+                    for db in range(2):
+                        if side[a + da, b + db] != 0:
+                            side[a + da, b + db] = 0
+                            u = G[goff[p] + I[p, 0] + (a + da) * I[p, 2]]
+                            w = G[goff[p] + J[p, 0] + (b + db) * J[p, 2]]
+                            x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
+                            y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
+                            z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                            i0 = min(int(x), nx - 2) if nx > 1 else 0
+                            j0 = min(int(y), ny - 2) if ny > 1 else 0
+                            k0 = min(int(z), nz - 2) if nz > 1 else 0
+                            out[k + (a + da) * nj + b + db] = _trilinear_at(states, index, values, B, sh, x, y, z,
+                                                                            i0, j0, k0)
+        k += ni * nj
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _blk(i, B, sh):
+    """``i // B`` for ``i >= 0``: a shift when ``B == 2**sh`` (``sh >= 0``)."""
+    return i >> sh if sh >= 0 else i // B
+
+
+@njit(cache=True, nogil=True)
+def _trilinear_at(states, index, values, B, sh, x, y, z, i0, j0, k0):
+    """``_sampling._trilinear`` at ``(x, y, z)`` of cell ``(i0, j0, k0)``: the same products, sums and order
+    (the 8 voxels read from one band block's values when they lie in one)."""
+    fx, fy, fz = x - i0, y - j0, z - k0
+    acc = 0.0
+    bx, by, bz = _blk(i0, B, sh), _blk(j0, B, sh), _blk(k0, B, sh)
+    ox, oy, oz = i0 - bx * B, j0 - by * B, k0 - bz * B
+    if ox + 1 < B and oy + 1 < B and oz + 1 < B and states[bx, by, bz] == 2:
+        blk = values[index[bx, by, bz]]
+        for di in range(2):
+            wx = fx if di else 1.0 - fx
+            if wx == 0.0:
+                continue
+            for dj in range(2):
+                wy = fy if dj else 1.0 - fy
+                if wy == 0.0:
+                    continue
+                for dk in range(2):
+                    wz = fz if dk else 1.0 - fz
+                    if wz == 0.0:
+                        continue
+                    acc += wx * wy * wz * blk[ox + di, oy + dj, oz + dk]
+        return acc
+    for di in range(2):
+        wx = fx if di else 1.0 - fx
+        if wx == 0.0:
+            continue
+        i = i0 + di
+        bx = _blk(i, B, sh)
+        for dj in range(2):
+            wy = fy if dj else 1.0 - fy
+            if wy == 0.0:
+                continue
+            j = j0 + dj
+            by = _blk(j, B, sh)
+            for dk in range(2):
+                wz = fz if dk else 1.0 - fz
+                if wz == 0.0:
+                    continue
+                kk = k0 + dk
+                bz = _blk(kk, B, sh)
+                st = states[bx, by, bz]
+                if st == 2:
+                    v = values[index[bx, by, bz], i - bx * B, j - by * B, kk - bz * B]
+                else:
+                    v = np.float32(1.5) if st == 1 else np.float32(-0.5)
+                acc += wx * wy * wz * v
+    return acc
 
 
 def _sections(sample, level, planes, coarse=4):
@@ -432,10 +621,12 @@ def _sections(sample, level, planes, coarse=4):
     Every plane is sampled every ``coarse`` pixels first; the contour is then traced at full
     resolution in the window around the coarse one only (2 coarse pixels of margin: the same
     pixels, so the same contour as on the whole plane, which is sampled when the contour reaches
-    the margin or the coarse sampling found none).  All planes share each sampling call.
+    the margin or the coarse sampling found none).  All planes share each sampling call.  The windows
+    are part of the result's last bits (a window's contour is offset back by adding ``lo``: every 8th
+    pixel for the coarse pass at 0.25 mm moved 130 of the sample's equivalent diameters by an ulp).
     """
     centres = [np.array([[(len(p.g) - 1) / 2] * 2]) for p in planes]
-    rough = _sample_planes(sample, planes, [(0, len(p.g), 0, len(p.g), coarse) for p in planes])
+    rough = _sample_planes(sample, planes, [(0, len(p.g), 0, len(p.g), coarse) for p in planes], level)
     rough = [_closed_around(img, level, c / coarse) for img, c in zip(rough, centres)]
     boxes = {}
     for k, (p, r) in enumerate(zip(planes, rough)):
@@ -445,7 +636,7 @@ def _sections(sample, level, planes, coarse=4):
             hi = np.minimum(np.ceil(r[0].max(axis=0) * coarse).astype(int) + 2 * coarse, n - 1)
             boxes[k] = (lo, hi)
     fine = _sample_planes(sample, [planes[k] for k in boxes],
-                          [(lo[0], hi[0] + 1, lo[1], hi[1] + 1, 1) for lo, hi in boxes.values()])
+                          [(lo[0], hi[0] + 1, lo[1], hi[1] + 1, 1) for lo, hi in boxes.values()], level)
     best = [None] * len(planes)
     for (k, (lo, hi)), img in zip(boxes.items(), fine):
         sub = _closed_around(img, level, centres[k] - lo)
@@ -457,7 +648,7 @@ def _sections(sample, level, planes, coarse=4):
                 best[k] = (ct + lo, area)
     rest = [k for k in range(len(planes)) if best[k] is None]
     whole = _sample_planes(sample, [planes[k] for k in rest], [(0, len(planes[k].g), 0, len(planes[k].g), 1)
-                                                               for k in rest])
+                                                               for k in rest], level)
     for k, img in zip(rest, whole):
         best[k] = _closed_around(img, level, centres[k])
     return [p.result(b) for p, b in zip(planes, best)]
@@ -563,15 +754,41 @@ def measure_aaa(
 def _band_box(field, level):
     """Voxel bounds ``lo`` (inclusive), ``hi`` (exclusive) of the blocks holding values above ``level``; None if none."""
     B = field.block
-    hot = field.states == 1
-    band = np.argwhere(field.states == 2)
-    if len(band):
-        rows = field.index[tuple(band.T)]
-        hot[tuple(band[(field.values[rows] > level).any(axis=(1, 2, 3))].T)] = True
-    if not hot.any():
+    lo, hi = _hot_blocks(field.states, field.index, field.values, float(level))
+    if lo[0] > hi[0]:
         return None, None
-    idx = np.argwhere(hot)
-    return idx.min(axis=0) * B, np.minimum((idx.max(axis=0) + 1) * B, field.shape)
+    return lo * B, np.minimum((hi + 1) * B, field.shape)
+
+
+@njit(cache=True, nogil=True)
+def _hot_blocks(states, index, values, level):
+    """Smallest and largest block indices (3,) of the inside blocks and the band blocks holding a value
+    above ``level`` (one pass over the blocks, a band block's values until the first above; at 0.25 mm
+    0.035 -> 0.003 s); ``lo > hi`` when there are none."""
+    nx, ny, nz = states.shape
+    lo = np.array([nx, ny, nz], dtype=np.int64)
+    hi = np.array([-1, -1, -1], dtype=np.int64)
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                st = states[i, j, k]
+                hot = st == 1
+                if st == 2:
+                    blk = values[index[i, j, k]]
+                    for a in range(blk.shape[0]):
+                        for b in range(blk.shape[1]):
+                            for c in range(blk.shape[2]):
+                                if blk[a, b, c] > level:
+                                    hot = True
+                                    break
+                            if hot:
+                                break
+                        if hot:
+                            break
+                if hot:
+                    lo[0], lo[1], lo[2] = min(lo[0], i), min(lo[1], j), min(lo[2], k)
+                    hi[0], hi[1], hi[2] = max(hi[0], i), max(hi[1], j), max(hi[2], k)
+    return lo, hi
 
 
 def _measures(c, arc, sections, inside, origin, vs, sac_factor, params):
@@ -614,10 +831,122 @@ def _crossing(arc, eq, i_in, i_out, thr):
 
 
 def _sac_volume(inside, origin, vs, c, arc, s0, s1):
-    """Volume of the inside voxels whose nearest centreline point lies between arc lengths s0 and s1."""
-    from scipy.spatial import cKDTree
+    """Volume of the inside voxels whose nearest centreline point lies between arc lengths s0 and s1.
 
-    pts = origin + np.argwhere(inside) * vs
-    _, near = cKDTree(c).query(pts, workers=-1)  # both cores (1.3 M voxels at 0.25 mm): the same nearest points
-    sel = (arc[near] >= s0) & (arc[near] <= s1)
-    return float(sel.sum() * vs**3)
+    ``scipy.spatial.cKDTree(c).query(origin + np.argwhere(inside) * vs)``'s nearest points, compiled
+    (:func:`_sac_count`): each voxel's nearest flagged and unflagged point, the points scanned in
+    their order along the centreline's chord (a point farther along it than the nearest so far
+    cannot be nearer); a voxel whose two are within 1e-9 of each other (relative, squared: rounding
+    could order them either way) goes to the tree, so its tie breaks as the tree's.  The same count
+    (sample, 0.25 mm: 1.3 M voxels, 0.86 s CPU on two threads -> 0.09 s on one, without the voxels' (N, 3)
+    coordinates; 1 mm: 0.074 -> 0.016 s).
+    """
+    flag = (arc >= s0) & (arc <= s1)
+    c = np.ascontiguousarray(c, dtype=np.float64)
+    u = c[-1] - c[0]
+    n = np.linalg.norm(u)
+    u = np.array([0.0, 0.0, 1.0]) if not n > 0 else u / n
+    proj = c @ u
+    order = np.argsort(proj, kind="stable")
+    of, ou = order[flag[order]], order[~flag[order]]
+    count, amb = _sac_count(np.ascontiguousarray(inside), np.asarray(origin, dtype=np.float64), float(vs), c,
+                            u, proj[order], order, flag, proj[of], of, proj[ou], ou)
+    if len(amb):
+        from scipy.spatial import cKDTree
+
+        _, near = cKDTree(c).query(origin + amb * vs)
+        count += int(flag[near].sum())
+    return float(count * vs**3)
+
+
+@njit(cache=True, nogil=True)
+def _nearest_along(c, sproj, order, x, y, z, pp):
+    """Squared distance from ``(x, y, z)`` (``pp`` along ``u``) to the point of ``c[order]`` nearest along
+    ``u`` (``sproj`` their sorted coordinates), and a lower bound of the squared distance to all of them
+    (the gap along ``u``, less 1e-9 for its rounding); ``inf``, ``inf`` when there are none."""
+    n = sproj.shape[0]
+    if n == 0:
+        return np.inf, np.inf
+    h = np.searchsorted(sproj, pp)
+    if h >= n or (h > 0 and pp - sproj[h - 1] <= sproj[h] - pp):
+        h -= 1
+    m = order[h]
+    dx = x - c[m, 0]
+    dy = y - c[m, 1]
+    dz = z - c[m, 2]
+    gap = max(abs(pp - sproj[h]) - 1e-9, 0.0)
+    return dx * dx + dy * dy + dz * dz, gap * gap
+
+
+@njit(cache=True, nogil=True)
+def _sac_count(inside, origin, vs, c, u, sproj, order, flag, fproj, forder, uproj, uorder):
+    """The inside voxels (at ``origin + index * vs``) whose nearest point of ``c`` (K, 3) is flagged, and
+    the voxels (M, 3) int64 whose nearest flagged and unflagged points are too near to tell (see
+    :func:`_sac_volume`); ``sproj`` the points' sorted coordinates along the unit vector ``u``, ``order``
+    their indices; ``fproj``, ``forder`` and ``uproj``, ``uorder`` the same of the flagged and the
+    unflagged points alone.
+
+    A voxel first tries the flagged and the unflagged point nearest to it along ``u``: when one is
+    nearer (by the same 1e-9 margin) than the other set's distance along ``u`` alone (a lower bound
+    of its distance), that set holds the nearest point; the others (the voxels near the sac's end
+    planes) scan all points within reach.
+    """
+    nx, ny, nz = inside.shape
+    K = c.shape[0]
+    count = 0
+    amb = np.empty((16, 3), dtype=np.int64)
+    namb = 0
+    for i in range(nx):
+        x = origin[0] + i * vs
+        for j in range(ny):
+            y = origin[1] + j * vs
+            for k in range(nz):
+                if not inside[i, j, k]:
+                    continue
+                z = origin[2] + k * vs
+                pp = x * u[0] + y * u[1] + z * u[2]
+                df, lbf = _nearest_along(c, fproj, forder, x, y, z, pp)
+                du, lbu = _nearest_along(c, uproj, uorder, x, y, z, pp)
+                if df * (1.0 + 1e-9) + 1e-300 < lbu:
+                    count += 1
+                    continue
+                if du * (1.0 + 1e-9) + 1e-300 < lbf:
+                    continue
+                hi = np.searchsorted(sproj, pp)
+                lo = hi - 1
+                din = np.inf
+                dout = np.inf
+                bound = np.inf
+                while lo >= 0 or hi < K:
+                    if hi >= K or (lo >= 0 and pp - sproj[lo] <= sproj[hi] - pp):
+                        q = lo
+                        lo -= 1
+                        gap = pp - sproj[q]
+                    else:
+                        q = hi
+                        hi += 1
+                        gap = sproj[q] - pp
+                    if gap > bound:
+                        break  # the points beyond, on both sides, are farther still along u
+                    m = order[q]
+                    dx = x - c[m, 0]
+                    dy = y - c[m, 1]
+                    dz = z - c[m, 2]
+                    d = dx * dx + dy * dy + dz * dz
+                    if flag[m]:
+                        if d < din:
+                            din = d
+                    elif d < dout:
+                        dout = d
+                    best = min(din, dout)
+                    bound = math.sqrt(best) * (1.0 + 1e-9) + 1e-9
+                if din < dout and dout > din * (1.0 + 1e-9) + 1e-300:
+                    count += 1
+                elif not (dout < din and din > dout * (1.0 + 1e-9) + 1e-300):
+                    if namb == amb.shape[0]:
+                        more = np.empty((2 * namb, 3), dtype=np.int64)
+                        more[:namb] = amb
+                        amb = more
+                    amb[namb, 0], amb[namb, 1], amb[namb, 2] = i, j, k
+                    namb += 1
+    return count, amb[:namb]
