@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from organlab.raster import iso_contours
 from organlab.surface import _aaa
 from organlab.surface._sampling import FieldSampler
 from tests.test_surface_scale import _band, _tube
@@ -16,7 +17,7 @@ def test_band_planes_trace_the_fields_contours(block):
     """``_sample_planes(..., level)`` on a band field (pixels whose voxels lie in one inside or outside
     block take the block's value unless a square they are in may cross the level) against the field's
     own samples everywhere: every pixel off those squares keeps its side, every other pixel the field's
-    value bit for bit, and ``_iso_contours`` traces the same contours, point for point.  Planes at random
+    value bit for bit, and ``organlab.raster.iso_contours`` traces the same contours, point for point.  Planes at random
     centres and tilts through a tilted, swollen tube, windows of steps 1 and 3, levels on and beside the
     block values; block 3 takes the division path (4: shifts).  Measured: equal everywhere (and the
     sample's measures at 1 and 0.25 mm bit-identical to the plain sampling's)."""
@@ -50,8 +51,8 @@ def test_band_planes_trace_the_fields_contours(block):
                 for db in (0, 1):
                     mixed[da : da + sq.shape[0], db : db + sq.shape[1]] |= sq
             assert not (diff & mixed).any()
-            pw, ow = _aaa._iso_contours(np.ascontiguousarray(w), level)
-            pg, og = _aaa._iso_contours(np.ascontiguousarray(g), level)
+            pw, ow = iso_contours(np.ascontiguousarray(w), level)
+            pg, og = iso_contours(np.ascontiguousarray(g), level)
             np.testing.assert_array_equal(ow, og)
             np.testing.assert_array_equal(pw, pg)
             n_contours += len(ow) - 1
