@@ -35,7 +35,11 @@ against the specimen's exact volume.
 Usage::
 
     .venv/bin/python benchmarks/bench_poses.py [--cache /tmp/organlab_bench_poses] [--scenes bump_aaa7 ...]
-        [--repeat 3] [--voxel-size 1]
+        [--repeat 3] [--voxel-size 1] [--supersample 2]
+
+``--supersample N`` renders the views and background frames with N x N sub-pixel samples per pixel (box
+filter; 2 by default, the renders above; the board images stay at 3) into ``<scene>_36_ssN`` (``<scene>_36``
+for 2): the same seeds, drifts and noise, pixels that integrate more like a sensor's.
 """
 
 from __future__ import annotations
@@ -53,8 +57,8 @@ def drift_angles(n, seed, total=3.0, jitter=0.3):
     return 360.0 * np.arange(n) / n + total * np.arange(n) / (n - 1) + np.concatenate([[0.0], g.normal(0, jitter, n - 1)])
 
 
-def scenes(n=36, size=(640, 480)):
-    base = dict(image_size=size, n_views=n, n_intrinsic=0, n_turntable=8, n_background=5, supersample=2, board_supersample=3,
+def scenes(n=36, size=(640, 480), supersample=2):
+    base = dict(image_size=size, n_views=n, n_intrinsic=0, n_turntable=8, n_background=5, supersample=supersample, board_supersample=3,
                 noise_sigma=1.0, include_camera=True, include_poses=False)
     return {
         "ok_aaa7": dict(base, seed=1, specimen="aaa-7"),
@@ -127,18 +131,24 @@ def main(argv=None):
     ap.add_argument("--scenes", nargs="+", default=list(scenes()) + ["drift_dented+audit", "drift_aaa7+audit", "sample"])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--voxel-size", type=float, default=None)
+    ap.add_argument("--supersample", type=int, default=2,
+                    help="sub-pixel samples per axis of the view and background renders (box filter; a real sensor "
+                         "integrates over the pixel's area); renders at other than 2 go to their own folders")
     a = ap.parse_args(argv)
+    if a.supersample < 1:
+        ap.error(f"--supersample must be >= 1, got {a.supersample}")
+    tag = "" if a.supersample == 2 else f"_ss{a.supersample}"  # the folders of 2 (the default) keep their old names
     for name in a.scenes:
         base_name, audit = name.split("+")[0], name.endswith("+audit")
         if name == "sample":
             folder = Path(__file__).resolve().parents[1] / "sample_sessions" / "aaa_phantom"
             truth = None
         else:
-            folder = a.cache / f"{base_name}_36"
+            folder = a.cache / f"{base_name}_36{tag}"
             if not (folder / "truth.json").is_file():
-                t0 = time.perf_counter()
-                make_session(folder, **scenes()[base_name])
-                print(f"rendered {folder} in {time.perf_counter() - t0:.0f} s")
+                t0, c0 = time.perf_counter(), time.process_time()
+                make_session(folder, **scenes(supersample=a.supersample)[base_name])
+                print(f"rendered {folder} in {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
             truth = json.loads((folder / "truth.json").read_text())
         s = load_session(folder)
         if audit:
