@@ -52,7 +52,7 @@ from .progress import NullProgress
 from .session import Session, load_session, write_json
 from .silhouette import Silhouette, SilhouetteModel, silhouette
 from .surface import (color_vertices, finish_surface, is_aaa_session, measure, measure_aaa, mesh_from_field,
-                      read_ply)
+                      read_ply, release_heap)
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
@@ -1114,6 +1114,8 @@ class Engine:
         if measuring:
             try:
                 aaa = measure_aaa(surface_of, grid) if aaa_job is None else aaa_job.result()
+                if aaa_job is None:  # a big grid: the measures' freed arrays go back before the occupancy's
+                    release_heap()
             except OrganlabError as e:
                 if settings.measure:  # asked for: an error; automatic: noted in the report
                     raise

@@ -21,7 +21,7 @@ from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
 from ._mesh import MC_METHODS, Mesh, MeshMeasures, color_vertices, measure, mesh_from_field, mesh_from_volume
 from ._picture import aaa_picture, mesh_snapshot
 from ._quality import boundary_loops, mesh_quality
-from ._repair import FinishedSurface, finish_surface, remesh_mesh, repair_mesh, smooth_mesh
+from ._repair import FinishedSurface, finish_surface, release_heap, remesh_mesh, repair_mesh, smooth_mesh
 from ._result import is_aaa_session, load_voxels, mesh_result
 from ._tetra import TETRA_FORMATS, TetMesh, read_tetra, tet_quality, tetrahedralize, write_tetra
 from ._voronoi import crust, labelled_balls, poisson_surface, poles, vertex_normals
@@ -43,6 +43,7 @@ __all__ = [
     "mesh_quality",
     "boundary_loops",
     "finish_surface",
+    "release_heap",
     "FinishedSurface",
     "surface_deviation",
     "closest_points",

@@ -495,13 +495,13 @@ def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, referenc
     return out, [rec] + recs
 
 
-#: Finishing surfaces of at least this many raw faces hands the heap's free pages back (:func:`_release_heap`):
+#: Finishing surfaces of at least this many raw faces hands the heap's free pages back (:func:`release_heap`):
 #: the sample at 0.5 mm and finer (the faces grow at least 4x per halving from 57 724 at 1 mm).  Below, it frees
 #: tens of MB, and the trim cost the viewer's 1 mm update 3-11 ms CPU, 10-38 ms wall (a loaded machine).
 _TRIM_FACES = 200_000
 
 
-def _release_heap():
+def release_heap() -> None:
     """Hand the C heap's free pages back to the system (glibc's ``malloc_trim``; nothing elsewhere).
 
     Finishing a fine surface frees hundreds of MB of arrays that glibc keeps in the heap (arrays freed
@@ -645,7 +645,7 @@ def finish_surface(
         final = mesh_quality(out)
     _SURFACES.clear()  # the closest-point trees (0.25 mm: ~100 MB for the raw surface) are not kept past the call
     if len(mesh.faces) >= _TRIM_FACES:
-        _release_heap()
+        release_heap()
     if mesh.vertex_colors is not None:
         from scipy.spatial import cKDTree
 
