@@ -1114,7 +1114,7 @@ class Engine:
         if measuring:
             try:
                 aaa = measure_aaa(surface_of, grid) if aaa_job is None else aaa_job.result()
-                if aaa_job is None:  # a big grid: the measures' freed arrays go back before the occupancy's
+                if aaa_job is None:  # measured alone (a big grid, or no finishing): their freed arrays go back before the occupancy's
                     release_heap()
             except OrganlabError as e:
                 if settings.measure:  # asked for: an error; automatic: noted in the report
