@@ -12,6 +12,7 @@ import numba
 import numpy as np
 
 from ..camera import Camera
+from ..nbcam import undistort_points
 
 # Lighting fixed relative to the camera: mostly ambient, mild diffuse.
 AMBIENT = 0.82
@@ -69,45 +70,14 @@ def _unit_rays(xn):
 def _normalized_chunk(px, K, dist, iterations):
     """:meth:`Camera.pixels_to_normalized` of pixels ``(N, 2)``: the same operations in the same order.
 
-    :func:`organlab.camera.undistort`'s Newton steps on every point, until the largest residual of
-    the chunk (NaN ignored) is below 1e-14 or ``iterations`` steps.
+    :func:`organlab.camera.undistort`'s Newton steps on every point (:func:`organlab.nbcam.undistort_points`),
+    until the largest residual of the chunk (NaN ignored) is below 1e-14 or ``iterations`` steps.
     """
-    n = px.shape[0]
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    xd = np.empty(n)
-    yd = np.empty(n)
-    for i in range(n):
-        yd[i] = (px[i, 1] - K[1, 2]) / K[1, 1]
-        xd[i] = (px[i, 0] - K[0, 2] - K[0, 1] * yd[i]) / K[0, 0]
-    xn = np.empty((n, 2))
-    xn[:, 0] = xd
-    xn[:, 1] = yd
-    for _ in range(iterations):
-        worst = 0.0
-        for i in range(n):
-            x = xn[i, 0]
-            y = xn[i, 1]
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            rx = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)) - xd[i]
-            ry = (y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y) - yd[i]
-            drad_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            a = radial + x * drad_dr2 * 2 * x + 2 * p1 * y + p2 * (2 * x + 4 * x)
-            b = x * drad_dr2 * 2 * y + 2 * p1 * x + p2 * 2 * y
-            c = y * drad_dr2 * 2 * x + p1 * 2 * x + 2 * p2 * y
-            d = radial + y * drad_dr2 * 2 * y + p1 * (2 * y + 4 * y) + 2 * p2 * x
-            det = a * d - b * c
-            if np.abs(det) < 1e-12:
-                det = 1e-12
-            xn[i, 0] = x - (d * rx - b * ry) / det
-            xn[i, 1] = y - (-c * rx + a * ry) / det
-            if abs(rx) > worst:
-                worst = abs(rx)
-            if abs(ry) > worst:
-                worst = abs(ry)
-        if worst < 1e-14:
-            break
-    return xn
+    xy = np.empty((px.shape[0], 2))
+    for i in range(px.shape[0]):
+        xy[i, 1] = (px[i, 1] - K[1, 2]) / K[1, 1]
+        xy[i, 0] = (px[i, 0] - K[0, 2] - K[0, 1] * xy[i, 1]) / K[0, 0]
+    return undistort_points(xy, dist, iterations)
 
 
 def camera_frame_rays(camera, supersample):
