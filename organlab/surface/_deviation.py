@@ -289,6 +289,17 @@ class _Surface:
         # only picks the candidate faces; the distances are this mesh's own)
         self.tree = _Grid(self.v, self.f) if tree is None else tree
         self.k = min(_K, len(self.f))
+        self._vertex_normals = None
+
+    def vertex_normal_sums(self):
+        """Area-weighted normals ``(V, 3)`` of the vertices (not normalized; computed once, one bincount per corner
+        and component: 1 mm sample, 57 724 faces, about 10 ms)."""
+        if self._vertex_normals is None:
+            v, f = self.v, self.f
+            fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+            self._vertex_normals = np.stack([sum(np.bincount(f[:, i], fn[:, j], len(v)) for i in range(3))
+                                             for j in range(3)], axis=1)
+        return self._vertex_normals
 
     def closest(self, points, k=None):
         """``(closest (N, 3), distance (N,), face (N,))`` for ``points`` ``(N, 3)`` (among ``k`` candidate faces)."""

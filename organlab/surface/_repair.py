@@ -31,7 +31,7 @@ from ._guard import keep_on_data, near_deviation
 from ._mesh import Mesh
 from ._quality import _face_figures, _moved, boundary_loops, has_null_faces, mesh_quality, triangle_angles
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
-from ._thin import keep_thin, same_side, vertex_normal_sums
+from ._thin import keep_thin, same_side
 from ._voronoi import vertex_normals
 
 
@@ -423,7 +423,7 @@ def _staircase(smoothed, raw, voxel_size):
     sub = np.arange(0, len(smoothed.vertices), step)
     ref = _surface(raw)
     _, d, face = ref.closest(smoothed.vertices[sub])
-    return bool(d.mean() > STAIRCASE_VOXELS * voxel_size), bool((~same_side(ref, face, vertex_normal_sums(ref)[sub])).any())
+    return bool(d.mean() > STAIRCASE_VOXELS * voxel_size), bool((~same_side(ref, face, ref.vertex_normal_sums()[sub])).any())
 
 
 def _adaptive_step(mesh, target_mm, voxel_size, min_angle, keep_volume, reference):
