@@ -188,7 +188,7 @@ def _finned_ball(voxel_size, seed, half=None):
 def _without_thin(monkeypatch):
     """finish_surface as before the thin-part handling (._thin): no vertex put back after smoothing, every closest
     point taken by the remesher's projections, whichever side of a thin part it is on."""
-    monkeypatch.setattr("organlab.surface._repair.keep_thin", lambda smoothed, raw: (smoothed, 0))
+    monkeypatch.setattr("organlab.surface._repair.keep_thin", lambda smoothed, raw, **kw: (smoothed, 0))
     monkeypatch.setattr("organlab.surface._remesh.same_side", lambda surface, face, normals: np.ones(len(face), bool))
 
 
@@ -216,8 +216,11 @@ def test_finished_fins_stay_within_a_voxel(voxel_size, seed, monkeypatch):
     assert fin.watertight and fin.mesh.is_watertight
     assert fin.final["min_angle_deg"] >= 20.0
     assert fin.final["nonmanifold_edges"] == 0 and fin.final["boundary_edges"] == 0
-    # the volume is the raw's (the whole finishing: measured -0.30 % and +0.03 %; the fins are a few voxels thin)
-    assert abs(fin.volume_change_pct) < 0.5, fin.volume_change_pct
+    # the volume is the raw's (the whole finishing: measured -0.30 % and +0.03 %; the fins are a few voxels thin).
+    # Since the sliver cut keeps the smallest cut that reaches the angle when none also stays within a voxel (seed 0
+    # at 2 mm: a cut of 0.7 mm, 22.0 degrees, instead of one of 3 mm at 4.4 degrees that the last step happened to
+    # mend): -0.69 % and +0.03 %, the last step's 1.21 -> 0.67 voxel (was 3.46 -> 0.84)
+    assert abs(fin.volume_change_pct) < 1.0, fin.volume_change_pct
 
 
 # Fins thinner than a voxel at 1 mm (0.7 and 0.8 voxel thick): the occupancy is a one-voxel layer whose voxels meet
