@@ -1,0 +1,126 @@
+"""Issue 21: parts thinner than a voxel at 1 mm keep their shape through finish_surface.
+
+Analytic scenes (no render): a 15 mm ball with three half-discs of radius 24 mm, 0.45-0.6 voxel thick (random
+planes), a spherical cap and a tilted disc of other thicknesses, each as a coverage-like field (``0.5 - d``
+clipped, its 0.5 level on the true surface) and as an occupancy (``d <= 0``).  Parts this thin come out of marching
+cubes as two sheets a fraction of a voxel apart, perforated where the sampling misses them.
+
+What finishing did to them (before ._thin.thin_vertices): smoothing took some vertices of a sheet through it, only
+those went back to their raw places, and the remesher, starting from a sheet partly smoothed and partly raw, left
+hundreds of faces below 20 degrees (1 573 on the coverage fins 0.6 thick, seed 0); the sliver step's cuts and
+knife-edge flattening then left the surface 1.5-2 voxels off with angles of 0.03-0.16 degrees.  Now every vertex
+of a part thinner than a voxel (and 4 rings around) starts from its raw place, the edge lengths still from the
+smoothed surface.
+
+Developed on seeds 0-2 (fins 0.4-0.9 voxel thick); the scenes below were not looked at before the rule was fixed.
+"""
+
+import numpy as np
+import pytest
+
+from organlab.grid import VoxelGrid
+from organlab.surface import finish_surface, mesh_from_field, surface_deviation
+
+
+def _field(d, voxel_size, kind):
+    if kind == "coverage":
+        return np.clip(0.5 - d / voxel_size, 0.0, 1.0).astype(np.float32)
+    return d <= 0.0
+
+
+def finned_ball(kind, thick, seed, *, voxel_size=1.0):
+    """A 15 mm ball with three half-discs (radius 24 mm) ``thick`` voxels thick on random planes through its centre:
+    ``(field, grid)``, ``kind`` 'coverage' (float32) or 'occupancy' (bool)."""
+    n = int(60 / voxel_size) + 1
+    grid = VoxelGrid(origin=(-30.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    d = r - 15.0  # signed distance, mm (exact off the fins' junctions)
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        a = rng.normal(size=3)
+        a /= np.linalg.norm(a)
+        e = np.cross(a, rng.normal(size=3))
+        e /= np.linalg.norm(e)
+        plate = np.abs(x * a[0] + y * a[1] + z * a[2]) - 0.5 * thick * voxel_size
+        d = np.minimum(d, np.maximum.reduce([plate, r - 24.0, -(x * e[0] + y * e[1] + z * e[2])]))
+    return _field(d, voxel_size, kind), grid
+
+
+def capped_ball(kind, thick, *, voxel_size=1.0):
+    """A 10 mm ball under a spherical cap ``thick`` voxels thick (radius 17 mm about (0, 0, -4) mm, above z = 5 mm)."""
+    n = int(50 / voxel_size) + 1
+    grid = VoxelGrid(origin=(-25.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    rr = np.sqrt(x**2 + y**2 + (z + 4.0) ** 2)
+    d = np.minimum(np.sqrt(x**2 + y**2 + z**2) - 10.0, np.maximum(np.abs(rr - 17.0) - 0.5 * thick * voxel_size, 5.0 - z))
+    return _field(d, voxel_size, kind), grid
+
+
+def disc_on_hub(kind, thick, *, voxel_size=1.0, axis=(0.3, 0.2, 0.93)):
+    """A disc of radius 14 mm, ``thick`` voxels thick, tilted (normal ``axis``), through a 5 mm ball."""
+    n = int(40 / voxel_size) + 1
+    grid = VoxelGrid(origin=(-20.0,) * 3, voxel_size=voxel_size, shape=(n, n, n))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    r = np.sqrt(x**2 + y**2 + z**2)
+    d = np.minimum(r - 5.0, np.maximum(np.abs(x * a[0] + y * a[1] + z * a[2]) - 0.5 * thick * voxel_size, r - 14.0))
+    return _field(d, voxel_size, kind), grid
+
+
+SCENES = {
+    "fins coverage 0.6": lambda: finned_ball("coverage", 0.6, 3),
+    "fins occupancy 0.45": lambda: finned_ball("occupancy", 0.45, 4),
+    "cap coverage 0.6": lambda: capped_ball("coverage", 0.6),
+    "disc occupancy 0.45": lambda: disc_on_hub("occupancy", 0.45),
+}
+
+
+# Measured (before -> now; max / mean deviation in voxels against the raw surface less its specks, smallest angle,
+# volume change):
+#   fins coverage 0.6 (seed 3)    1.907 / 0.133, 0.04 deg, -0.03 %  -> 0.684 / 0.051, 22.3 deg, -0.03 %
+#   fins occupancy 0.45 (seed 4)  1.984 / 0.177, 0.03 deg, -1.51 %  -> 0.569 / 0.087, 23.2 deg, +0.07 %
+#   cap coverage 0.6              1.520 / 0.114, 0.05 deg, -0.30 %  -> 0.656 / 0.049, 22.4 deg, -0.30 %
+#   disc occupancy 0.45           1.777 / 0.217, 0.12 deg, -10.8 %  -> 0.505 / 0.075, 23.9 deg, +0.57 %
+# Bounds: the promises (1 voxel max, 0.25 mean, 20 degrees, closed and manifold) with no last step needed (the
+# remesher alone now keeps them: stay_on_data would hide a regression here; measured: none ran); volume within 1 %
+# (measured 0.57 % at most: the cap's and disc's thin rims; the broken disc lost 10.8 %).
+@pytest.mark.parametrize("scene", list(SCENES))
+def test_parts_thinner_than_a_voxel_keep_their_shape(scene):
+    from organlab.surface._repair import repair_mesh
+
+    raw = mesh_from_field(*SCENES[scene]())
+    fin = finish_surface(raw, voxel_size=1.0)
+    names = [s["step"] for s in fin.steps]
+    # the case is real: smoothing went through the part (the thin step ran and put vertices back)
+    assert "thin" in names and fin.steps[names.index("thin")]["vertices_kept"] > 0, names
+    assert "stay_on_data" not in names and "slivers" not in names, names
+    reference, _ = repair_mesh(raw, speck_mm=3.0)  # the promise is stated against the raw surface less its specks
+    dev = surface_deviation(fin.mesh, reference, voxel_size=1.0)
+    assert dev["max_voxels"] < 1.0 and dev["mean_voxels"] < 0.25, dev
+    assert fin.watertight and fin.final["min_angle_deg"] >= 20.0, fin.final["min_angle_deg"]
+    assert fin.final["nonmanifold_edges"] == 0 and fin.final["boundary_edges"] == 0
+    assert abs(fin.volume_change_pct) < 1.0, fin.volume_change_pct
+
+
+def test_thin_vertices_finds_the_parts_thinner_than_twice_the_depth():
+    """A plate 0.6 mm thick (1 mm voxels, coverage field) on a 6 mm ball: the plate's vertices away from the ball are
+    thin, the ball's away from the plate are not (a probe half a voxel deep stays inside it)."""
+    from organlab.surface._deviation import _surface
+    from organlab.surface._thin import thin_vertices
+
+    grid = VoxelGrid(origin=(-14.0,) * 3, voxel_size=1.0, shape=(29, 29, 29))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    ball = np.sqrt(x**2 + y**2 + z**2) - 6.0
+    plate = np.maximum.reduce([np.abs(z - 0.1) - 0.3, np.abs(y) - 5.0, x - 12.0, -x])
+    raw = mesh_from_field(np.clip(0.5 - np.minimum(ball, plate), 0.0, 1.0).astype(np.float32), grid)
+    v = raw.vertices
+    thin = thin_vertices(_surface(raw), 0.5)
+    on_plate = (v[:, 0] > 7.5) & (v[:, 0] < 11.5) & (np.abs(v[:, 1]) < 4.0)  # its flat middle, off its rims
+    on_ball = (np.linalg.norm(v, axis=1) < 6.5) & (np.abs(v[:, 2]) > 3.0)
+    assert on_plate.sum() > 30 and on_ball.sum() > 100
+    # measured: every flat-plate vertex thin, no ball vertex
+    assert thin[on_plate].all()
+    assert not thin[on_ball].any()
+    # a probe deeper than the plate's thickness is needed: a tenth of a voxel finds nothing on the plate either
+    assert not thin_vertices(_surface(raw), 0.1)[on_plate].any()
