@@ -12,6 +12,9 @@ and the finished surface was 1.7 voxels off the raw one.
 - :func:`keep_thin`: after smoothing, the vertices smoothing took through a thin part (their closest
   raw point faces away from their raw normal), and two rings around them, go back to their raw places
   (run only when :func:`._repair._staircase`'s sample of the smoothed vertices finds one);
+- :func:`thin_vertices`: the vertices of a part thinner than about a voxel (a probe half a voxel inward along the
+  normal is nearer the part's other side); :func:`keep_thin` puts them, and 4 rings around, back at their raw
+  places too, crossed or not, so that the remesher starts from one sheet, not a sheet partly smoothed and partly raw;
 - :func:`same_side`: a closest point whose face looks away from the moved vertex (normals more than 90
   degrees apart) is on the other side of a sheet, never on the vertex's own: the remesher's
   relaxations refuse it (the vertex keeps its place, as for their other refused moves) and
