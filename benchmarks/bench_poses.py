@@ -16,6 +16,8 @@ another shape (``aaa-7``) and of the non-AAA ``dented`` specimen, 36 views of
   default chosen on it; ``driftc_br11``: a third (seeds 61 / 65), rendered after the angles' prior was chosen;
   ``driftd_br11``: a fourth (seeds 71 / 75), rendered after the view-by-view scan was added;
   ``drifte_br13`` / ``driftf_br3``: the same drift on ``aaa-13+branch`` / ``aaa-3+branch`` (seeds 81 / 85, 91 / 95);
+  ``drifth_br11``: a drift on ``aaa-11+branch`` under the hard lamp (``hard=True``: cast shadows at the specimen's
+  foot, highlights, exposure, JPEG; seeds 101 / 105);
 * ``bump_aaa7``: the camera bumped after the board images (0.7 degrees, 1.4 mm);
 * ``bumpb_aaa11``: another bump (0.71 degrees, 1.92 mm, other directions) on another AAA (``aaa-11``);
 * ``slip_aaa7``: the specimen slid (1.2, -0.9) mm on the plate from view 18 on;
@@ -88,6 +90,9 @@ def scenes(n=36, size=(640, 480), supersample=2):
         # two more, on other branched AAAs, rendered to check the angles' sd and the maximum (session 7, nothing chosen on them)
         "drifte_br13": dict(base, seed=81, specimen="aaa-13+branch", true_angles_deg=drift_angles(n, 85)),
         "driftf_br3": dict(base, seed=91, specimen="aaa-3+branch", true_angles_deg=drift_angles(n, 95)),
+        # the drift under a hard lamp (cast shadows on the plate at the specimen's foot, highlights, +-10 % exposure,
+        # JPEG): the foot tangents where shadows touch the outline (session 10, nothing chosen on it)
+        "drifth_br11": dict(base, seed=101, specimen="aaa-11+branch", true_angles_deg=drift_angles(n, 105), hard=True),
     }
 
 

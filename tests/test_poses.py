@@ -311,3 +311,42 @@ def test_the_jacobian_matches_finite_differences(kind, slip_view):
     assert scale.min() > 0
     err = np.abs(J - Jc).max(axis=0) / scale
     assert err.max() < 1e-5, err.max()
+
+
+def test_foot_tangents_weigh_by_their_measured_noise():
+    """The tangents that touch a silhouette's foot on the plate weigh ``min(1, s_others / s_foot)`` in the fits
+    (``_refine._foot_weight``, each group's robust noise at the fit), no longer 0: on the drift renders their
+    residuals at the true poses are as small as the others' (0.100-0.111 px against 0.104-0.116; docs/trust.md) and
+    they are 44 % of the tangents.  Here the point cloud's outlines (no rendering) with noise added along each
+    outline point's radius, 0.1 px on the others and 0.1 / 0.2 / 0.3 px on the lowest 4 px (the foot): weights
+    measured 1.0 (clipped), 0.79 and 0.57 at the true poses (a residual is a foot tangent of one view minus a
+    tangent of the other, often not a foot one, so its noise grows less than the foot's).  A weight from the
+    variances (squared) gives 0.63 / 0.32 and fails the bounds; the inverse ratio fails at once."""
+    from organlab.poses._model import Problem
+    from organlab.poses._refine import FOOT_PX, _foot_weight
+    from organlab.poses._tangents import pad_rays
+
+    pb0 = _tangent_problem("turntable", n=24, seed=3)
+    f = pb0.f
+    got = []
+    for foot_noise in (0.1, 0.2, 0.3):
+        rng = np.random.default_rng(11)
+        rays, lows = [], []
+        for r in pb0.rays_cam:
+            r = np.unique(r, axis=0)
+            v = r[:, 1] * f
+            low = v > v.max() - FOOT_PX
+            d = r[:, :2] - r[:, :2].mean(0)
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            sd = np.where(low, foot_noise, 0.1) / f
+            rays.append(np.column_stack([r[:, :2] + d * rng.normal(0.0, 1.0, len(r))[:, None] * sd[:, None], r[:, 2]]))
+            lows.append(low)
+        low = pad_rays([np.repeat(lw[:, None], 3, axis=1).astype(float) for lw in lows])[:, :, 0] > 0.5
+        pb = Problem(pb0.model, pad_rays(rays), np.stack([r.mean(0) for r in rays]), f, pairs=(pb0.I, pb0.J), low=low,
+                     foot_weight=1.0)
+        assert 0.2 < pb.foot.mean() < 0.8 and np.all(pb.keep == 1.0)  # foot tangents found, kept at full weight
+        got.append(_foot_weight(pb, np.zeros(pb.model.n_params)))
+    assert got[0] > 0.9 and 0.7 < got[1] < 0.88 and 0.48 < got[2] < 0.66, got
+    # the weight the fit is then given lands on the foot tangents alone
+    pw = Problem(pb0.model, pb.rays_cam, pb.centroid_cam, f, pairs=(pb0.I, pb0.J), low=low, foot_weight=got[2])
+    assert np.allclose(pw.keep[pw.foot], got[2]) and np.all(pw.keep[~pw.foot] == 1.0)

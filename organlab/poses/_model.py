@@ -58,7 +58,9 @@ SIGMA_ROTATION_DEG = 1.0
 #: About the camera's X axis (its tilt toward the table): the silhouettes of a specimen
 #: near symmetric about the axis pin it least (it trades with the model's height and shape).
 SIGMA_PITCH_DEG = 0.25
-#: Weight of the tangents that touch a silhouette's foot on the plate (the least reliable outline).
+#: Weight of the tangents that touch a silhouette's foot on the plate in the views' tangent RMS that 'auto' reads
+#: (:data:`._refine.FLAG_SUBPIXEL_PX` was measured without them: before the sub-pixel outlines they were the least
+#: reliable, 0.25 px against 0.14).  The fits weigh them by their measured noise (:func:`._refine._foot_weight`).
 FOOT_WEIGHT = 0.0
 SIGMA_TRANSLATION_MM = 2.0
 SIGMA_SLIP_MM = 5.0
@@ -240,7 +242,7 @@ def trend_jitter_root(n: int, trend_deg: float, jitter_deg: float) -> np.ndarray
 class Problem:
     """Tangent residuals of every usable pair under a :class:`Model`."""
 
-    def __init__(self, model, rays_cam, centroid_cam, f_px, *, pairs=None, x0=None, low=None):
+    def __init__(self, model, rays_cam, centroid_cam, f_px, *, pairs=None, x0=None, low=None, foot_weight=None):
         self.model = model
         self.rays_cam = rays_cam  # (n, M, 3)
         self.centroid_cam = centroid_cam  # (n, 3)
@@ -250,9 +252,11 @@ class Problem:
             pairs = self._usable_pairs(x0)
         self.I, self.J = pairs
         self.scale = self._scale(x0)
-        # tangents that touch a silhouette's foot (where it meets the plate: shadows, the least
-        # reliable outline) are left out, decided once at the starting poses
+        # tangents that touch a silhouette's foot (where it meets the plate: shadows) weigh foot_weight
+        # (default FOOT_WEIGHT), decided once at the starting poses; ``foot`` marks them
         self.keep = np.ones((len(self.I), 2))
+        self.foot = np.zeros((len(self.I), 2), dtype=bool)
+        self.foot_weight = FOOT_WEIGHT if foot_weight is None else float(foot_weight)
         if low is not None:
             rays_w, C, cen_w = self._geometry(x0)
             _, _, _, idx = pair_angles(rays_w, C, cen_w, self.I, self.J, return_index=True)
@@ -260,7 +264,8 @@ class Problem:
             P = np.arange(len(self.I))
             for side in (0, 1):
                 bad = li[P, idx[:, side]] | lj[P, idx[:, 2 + side]]
-                self.keep[bad, side] = FOOT_WEIGHT
+                self.foot[bad, side] = True
+                self.keep[bad, side] = self.foot_weight
         self.by_view = [np.nonzero((self.I == v) | (self.J == v))[0] for v in range(model.n)]
 
     def _geometry(self, x):
