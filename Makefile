@@ -16,13 +16,24 @@ STAMP := $(VENV)/.installed
 # start-up: below 1.5 mm the view-by-view carving calls a kernel, kill_many, that coarser grids never
 # reach), re-run at a chosen threshold (the slider), carved by view, the thesis hull, and the colouring
 # methods of its Method menu (coloring, space_carving and photo compiled 35 CPU s on their first choice).
-# Checked on a fresh clone: after it, `make demo` and the viewer at 1 mm (start-up, slider moves, every
-# method, carve by view) write no kernel to the cache.  It costs about 2 CPU minutes (58 s before the viewer's
-# kernels were added).
+# Then the kernels only finer grids or the command reach, by their smallest calls (the same signatures, checked
+# with numba's `.signatures`): the command's start-up loads (organlab.silhouette / organlab.poses warm_kernels:
+# the median of more than 32 frames, the undistortion with a writable dist), the AAA route's 2 x 2 x 2 minima
+# (_block_min, boxes over 50 000 voxels: 1 mm and finer), and finishing's at 0.25 mm (near_deviation's
+# _within, the sliver cut's check; _neighbour_mean's _star_sums).  Without them the old WARM left five kernels
+# for a fresh clone's first 0.25 mm command to compile (the 1 mm `make demo` three of them, by numba's
+# signatures and NUMBA_DEBUG_CACHE: the two start-up loads and _block_min).
+# Checked on a fresh cache (NUMBA_CACHE_DIR, 2026-12-04): after it, `organlab reconstruct` of the sample
+# (calibrating) at 0.25 mm and then at 1 mm writes no kernel; earlier, the viewer at 1 mm (start-up, slider
+# moves, every method, carve by view) wrote none either.  It costs about 2 CPU minutes (121 s user, load 11).
 WARM = $(BIN)/python -c "import shutil, tempfile; from organlab.pipeline import reconstruct; \
 	from organlab.engine import Engine, Settings; from organlab.session import load_session; \
 	from organlab.synthetic import with_true_cameras; d = tempfile.mkdtemp(); \
-	s = load_session(with_true_cameras('sample_sessions/aaa_phantom', d + '/s')); reconstruct(s, voxel_size=4.0); \
+	s = load_session(with_true_cameras('sample_sessions/aaa_phantom', d + '/s')); r = reconstruct(s, voxel_size=4.0); \
+	import numpy as np, organlab.silhouette as sil, organlab.poses as po; sil.warm_kernels(); po.warm_kernels(); \
+	from organlab.surface._guard import near_deviation; from organlab.surface._aaa import _block_min; \
+	from organlab.surface._remesh import _neighbour_mean; V, F = np.array(r.mesh.vertices), np.array(r.mesh.faces); \
+	near_deviation(r.mesh, r.mesh, V[[0]], 4.0, voxel_size=4.0); _block_min(np.zeros((1, 1, 1))); _neighbour_mean(V, F); \
 	e = Engine(s); st = Settings(voxel_size=4.0); e.stream_hull(st.replace(voxel_size=1.0), lambda *a: None); \
 	e.carving_views(e.run(st.replace(threshold=20.0))); e.run(st.replace(hull='thesis')); \
 	[e.run(st.replace(method=m)) for m in ('coloring', 'photo')]; shutil.rmtree(d)"

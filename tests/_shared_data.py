@@ -68,6 +68,19 @@ def hard_session_24(tmp_path_factory):
         include_camera=False, include_poses=False, seed=6))
 
 
+#: test_pipeline.py's posed session: the phantom, 12 views of 320 x 240, true camera and poses given, seed 3
+POSED_12 = dict(image_size=(320, 240), n_views=12, n_background=5, views_only=True, seed=3)
+
+
+def posed_session_12(tmp_path_factory):
+    """``make_session(**POSED_12)``, rendered once per run (about 3.5 s CPU) for test_pipeline.py and
+    test_robustness.py (which rendered the same settings with seed 7); read-only.  Its truth is its
+    ``truth.json`` (``make_session``'s return value but ``session_json``)."""
+    from organlab.synthetic import make_session
+
+    return made_once(tmp_path_factory, "posed12", lambda root: make_session(root, **POSED_12))
+
+
 def sample_calibrated(tmp_path_factory):
     """A copy of the sample (all 36 views) with the ``calibration.json`` its own boards give, computed
     once per run (about 6 s CPU) for test_trust.py's broken copies and test_sweep.py's runs, which need

@@ -106,11 +106,13 @@ def pytest_unconfigure(config):
 # process per file, load 6-11): test_trust 103 -> 51 (the pose check's speed-up), test_poses 57 -> 29 (35 with its
 # dinoSparseRing test), test_real_dino 31, test_photo 25 without its dino unit, test_coloring_robust 52 (its dino
 # backdrop session moved to test_real_dino); test_sweep measured 80 CPU s but stays first (its cluster's start, the
-# workers' imports and its `organlab sweep` subprocess make its wall far longer than its CPU).
+# workers' imports and its `organlab sweep` subprocess make its wall far longer than its CPU).  test_real_dino
+# 32.1 -> 24.1 (user + sys, one process, load ~10, 2026-12-04: the joint silhouette step's same masks for less CPU
+# and the bbox hull by carve instead of carve_reference).
 FILE_SECONDS = {
     "test_sweep.py": 120, "test_trust.py": 51, "test_coloring_robust.py": 52, "test_hostile_kill.py": 52,
     "test_poses.py": 35, "test_examples.py": 38, "test_api.py": 51, "test_pipeline.py": 39, "test_coloring.py": 39,
-    "test_notebook_jupyterlab.py": 39, "test_backdrop.py": 47, "test_capture.py": 34, "test_real_dino.py": 31,
+    "test_notebook_jupyterlab.py": 39, "test_backdrop.py": 47, "test_capture.py": 34, "test_real_dino.py": 24,
     "test_photo.py": 25, "test_calibration.py": 28, "test_agreement_limits.py": 25, "test_band.py": 24,
     "test_benchmarks.py": 23, "test_joint_silhouettes.py": 21, "test_calibration_real.py": 30,
     "test_finish_deviation.py": 18, "test_hostile_calibration.py": 17, "test_sample_session.py": 17,

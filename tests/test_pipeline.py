@@ -12,16 +12,17 @@ from organlab.errors import SessionError
 from organlab.pipeline import reconstruct, session_cameras, write_outputs
 from organlab.surface import read_ply
 from organlab.synthetic import make_session
+from tests._shared_data import posed_session_12
 
 SPEC_REPORT_KEYS = {"volume_mm3", "mesh_volume_mm3", "mesh_area_mm2", "watertight", "voxel_size_mm", "timings_s", "views", "camera"}
 
 
 @pytest.fixture(scope="module")
 def posed(tmp_path_factory):
-    """Small session with the true camera and poses given (no calibration needed)."""
-    root = tmp_path_factory.mktemp("posed") / "s"
-    truth = make_session(root, image_size=(320, 240), n_views=12, n_background=5, views_only=True, seed=3)
-    return root, truth
+    """Small session with the true camera and poses given (no calibration needed), read-only: made once per run
+    and shared with test_robustness.py (tests/_shared_data.posed_session_12)."""
+    root = posed_session_12(tmp_path_factory)
+    return root, json.loads((root / "truth.json").read_text())
 
 
 @pytest.fixture(scope="module")

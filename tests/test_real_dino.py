@@ -2,7 +2,7 @@
 
 The dino is carved from the authors' silhouettes (threshold 0.19, dilate 10,
 erode 7; the 15 images of dinoSR_good_silhouette_images.txt) with the
-thesis's bounding-box test (carve_reference) and with hull_field + marching
+thesis's bounding-box test (carve: carve_reference's occupancy) and with hull_field + marching
 cubes; each model is reprojected into every view (voxel boxes, or mesh
 triangles, filled at pixel centres) and compared with the photo's silhouette.
 
@@ -26,7 +26,7 @@ Mesh volumes: field 119.0 / 119.2 cm^3 (0.13 % apart), bbox voxels 161.7 /
 import numpy as np
 import pytest
 
-from organlab.carving import carve_reference, hull_field
+from organlab.carving import carve, hull_field
 from organlab.datasets import DatasetError, load_middlebury, middlebury_silhouettes, write_middlebury_session
 from organlab.raster import model_mask
 from organlab.grid import VoxelGrid
@@ -136,7 +136,9 @@ def test_silhouettes_follow_the_recipe(dino):
 
 def _compare(masks, cameras, voxel, bbox):
     grid = VoxelGrid.from_roi(bbox[0] - 4.0, bbox[1] + 4.0, voxel)
-    occ = carve_reference(masks, cameras, grid)
+    # the bbox test compiled (carve): the same occupancy as the numpy yardstick carve_reference (test_carving checks
+    # them against each other; on these masks equal at 2 and 1 mm, measured), 0.2 against 4.7 CPU s at 1 mm
+    occ = carve(masks, cameras, grid)
     field = hull_field(masks, cameras, grid)
     mesh = mesh_from_volume(field, grid)
     assert mesh.is_watertight

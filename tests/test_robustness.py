@@ -9,14 +9,16 @@ import pytest
 
 from organlab import load_session
 from organlab.pipeline import reconstruct
-from organlab.synthetic import make_session
+from tests._shared_data import posed_session_12
 
 
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory):
-    root = tmp_path_factory.mktemp("robust") / "s"
-    truth = make_session(root, image_size=(320, 240), n_views=12, n_background=5, views_only=True, seed=7)
-    return root, truth, reconstruct(root, voxel_size=2.0)
+    """test_pipeline.py's posed session (12 views of 320 x 240, seed 3; tests/_shared_data.posed_session_12, made
+    once per run; read-only: the tests below edit copies).  It was a session of its own with seed 7: the figures
+    below were measured on both (seed 7 / seed 3)."""
+    root = posed_session_12(tmp_path_factory)
+    return root, json.loads((root / "truth.json").read_text()), reconstruct(root, voxel_size=2.0)
 
 
 def _copy_with(root, dest, edit):
@@ -41,7 +43,8 @@ def test_salt_and_pepper_noise_changes_nothing_much(clean, tmp_path):
         return out
 
     noisy = reconstruct(_copy_with(root, tmp_path / "noisy", salt_pepper), voxel_size=2.0)
-    # no tunnel, no spurious blobs: the volume moves by well under 1 %
+    # no tunnel, no spurious blobs: the volume moves by well under 1 % (measured +0.70 % / +0.70 %, 0.071 % / 0.070 %
+    # of the voxels changed)
     assert noisy.mesh.volume == pytest.approx(ref.mesh.volume, rel=0.01)
     assert noisy.mesh.is_watertight
     assert np.mean(noisy.occupancy != ref.occupancy) < 0.002
@@ -63,7 +66,8 @@ def test_tolerance_survives_a_wrong_view(clean, tmp_path):
     tolerant = reconstruct(bad_root, voxel_size=2.0, tolerance=1)
     # the bad view cuts a slab out of the model; with one view allowed to disagree
     # every voxel of the clean hull is back, at the price of a looser hull (each voxel
-    # may ignore its most restrictive view: measured +3.5 % with 12 views)
+    # may ignore its most restrictive view: measured +3.85 % / +3.78 % with 12 views; the strict hull lost 32.5 % /
+    # 32.6 % of the clean one)
     lost = ref.occupancy & ~strict.occupancy
     assert lost.sum() > 0.03 * ref.occupancy.sum()
     assert np.all(tolerant.occupancy[ref.occupancy])

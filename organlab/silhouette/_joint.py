@@ -155,14 +155,20 @@ def _carve_tolerant(masks, cameras, lo, hi, voxel, *, sole=False):
         for m, c in zip(masks, cameras):
             carver.add_view(m, c)
         return grid, carver.occupancy
-    prev = np.zeros(grid.shape, np.uint16)
-    who = np.full(grid.shape, -1, np.int16)
+    # which view carved a voxel that one view carves, from the counts c_i after each view i (0 before, then 1 from
+    # the view k that carves it): sum_i i (c_i - c_{i-1}) = (n - 1) c_{n-1} - sum_{i < n-1} c_i = k.  One sum per
+    # view instead of comparing the counts before and after it (0.6 of the step's 9 CPU s on the dino, 3 rounds)
+    n = len(masks)
+    acc = np.zeros(grid.shape, np.uint16 if (TOLERANCE + 1) * n < 2**16 else np.int64)  # counts <= TOLERANCE + 1
     for i, (m, c) in enumerate(zip(masks, cameras)):
         carver.add_view(m, c)
-        cnt = carver.carve_counts
-        who[(cnt == 1) & (prev == 0)] = i
-        prev = cnt
-    return grid, (prev, who)
+        if i < n - 1:
+            acc += carver.carve_counts
+    counts = carver.carve_counts
+    one = counts == 1
+    who = np.full(grid.shape, -1, np.int16)
+    who[one] = (n - 1) - acc[one].astype(np.int64)
+    return grid, (counts, who)
 
 
 def prior_hull(masks: Sequence[np.ndarray], cameras: Sequence[Camera], box: tuple, *,
@@ -236,18 +242,40 @@ def _project(cam, pts):
         return cam.project(pts)
     M = cam.K @ cam.R
     b = cam.K @ np.asarray(cam.t, float).ravel()
-    uvw = pts @ M.T + b
+    # (M @ pts.T).T, not pts @ M.T: the same values (bit for bit on the dino's 15 cameras), but OpenBLAS's threads
+    # took 58 against 16 ms CPU (248 / 140 against 64 / 39 ms wall) per 205 000 points (the dino's 15 cameras,
+    # 10 alternating runs, load 11 on 2 cores)
+    uvw = (M @ pts.T).T + b
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(uvw[:, 2] > 0, uvw[:, 2], np.nan)
         return uvw[:, :2] / w[:, None]
 
 
-def _raster_of(occ, grid):
-    """``MeshRaster`` of the boundary faces of ``occ``, found in its bounding box only (a few voxels of a large grid)."""
-    idx = np.argwhere(occ)
+def _raster_of(idx, grid):
+    """``MeshRaster`` of the boundary faces of the voxels ``idx`` ((n, 3) int, n > 0) of ``grid``, found in their
+    bounding box only (a few voxels of a large grid)."""
     a, b = idx.min(axis=0), idx.max(axis=0) + 1
+    occ = np.zeros(tuple(b - a), bool)
+    occ[tuple((idx - a).T)] = True
     sub = VoxelGrid(tuple(np.asarray(grid.origin, float) + a * grid.voxel_size), grid.voxel_size, tuple(b - a))
-    return MeshRaster(*voxel_boundary_quads(occ[a[0]:b[0], a[1]:b[1], a[2]:b[2]], sub))
+    return MeshRaster(*voxel_boundary_quads(occ, sub))
+
+
+def _required_voxels(need_who, n_views):
+    """Per view, the voxels (``(n, 3)`` int indices, or None) that ``need_who`` requires of it: one pass over the
+    grid instead of one per view."""
+    idx = np.argwhere(need_who >= 0)
+    out = [None] * n_views
+    if not len(idx):
+        return out
+    views = need_who[tuple(idx.T)]
+    order = np.argsort(views, kind="stable")
+    idx, views = idx[order], views[order]
+    cuts = np.searchsorted(views, np.arange(n_views + 1))
+    for i in range(n_views):
+        if cuts[i + 1] > cuts[i]:
+            out[i] = idx[cuts[i]:cuts[i + 1]]
+    return out
 
 
 def _stats(d, ring):
@@ -433,6 +461,7 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
         # the hull's boundary faces once per round, projected into every view (as raster.model_mask of the
         # occupancy, which finds them again per view: 60 % of the step's time on the dino's 15 views)
         raster = MeshRaster(*voxel_boundary_quads(hull, grid))
+        required = _required_voxels(need_who, len(cameras))
         for i, cam in enumerate(cameras):
             if not editable[i]:
                 new.append(cur[i])
@@ -440,8 +469,7 @@ def joint_masks(masks: Sequence[np.ndarray], differences: Sequence[np.ndarray | 
             fp = cam.pixel_footprint(np.asarray(grid.origin) + 0.5 * voxel * np.asarray(grid.shape))
             slack = int(math.ceil(2.5 * voxel / fp)) if math.isfinite(fp) and fp > 0 else 3
             prior = raster.mask(cam, np.shape(differences[i])[:2])
-            mine = need_who == i
-            need = _raster_of(mine, grid).mask(cam, shapes[i]) if mine.any() else None
+            need = None if required[i] is None else _raster_of(required[i], grid).mask(cam, shapes[i])
             m, last[i] = refine_view(np.asarray(differences[i], np.float32), cur[i], prior, slack, keyed=keyed,
                                      need=need)
             changed += int(np.count_nonzero(m != cur[i]))
