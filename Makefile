@@ -18,7 +18,7 @@ STAMP := $(VENV)/.installed
 # methods of its Method menu (coloring, space_carving and photo compiled 35 CPU s on their first choice).
 # Then the kernels only finer grids or the command reach, by their smallest calls (the same signatures, checked
 # with numba's `.signatures`): the command's start-up loads (organlab.silhouette / organlab.poses warm_kernels:
-# the median of more than 32 frames, the undistortion with a writable dist), the AAA route's 2 x 2 x 2 minima
+# the median of more than 32 frames, the undistortion with the camera's read-only dist), the AAA route's 2 x 2 x 2 minima
 # (_block_min, boxes over 50 000 voxels: 1 mm and finer), and finishing's at 0.25 mm (near_deviation's
 # _within, the sliver cut's check; _neighbour_mean's _star_sums).  Without them the old WARM left five kernels
 # for a fresh clone's first 0.25 mm command to compile (the 1 mm `make demo` three of them, by numba's

@@ -124,7 +124,9 @@ def warm_kernels() -> None:
     img[2:4, 2:4] = 200
     edge_coverage(img, np.zeros((6, 6, 3), np.float32), img[..., 0] > 0)
     iso_contours(np.zeros((2, 2)), 0.5)  # organlab.poses._tangents.outline_rays': the contours, the undistortion
-    undistort_points(np.zeros((1, 2)), np.ones(5))
+    dist = np.ones(5)
+    dist.flags.writeable = False  # the stage passes the camera's read-only ``dist``: that specialisation
+    undistort_points(np.zeros((1, 2)), dist)
 
 
 @njit(cache=True, nogil=True)
