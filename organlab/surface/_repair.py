@@ -19,6 +19,7 @@ are cut out and filled before remeshing, see :mod:`._folds`.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -29,7 +30,8 @@ from ._deviation import _SURFACES, _deviation_figures, _distances, _Surface, _su
 from ._folds import fold_edges
 from ._guard import keep_on_data, near_deviation
 from ._mesh import Mesh
-from ._quality import _face_figures, _moved, boundary_loops, has_null_faces, mesh_quality, triangle_angles
+from ._quality import (_face_figures, _moved, boundary_loops, has_duplicate_vertices, has_null_faces, mesh_quality,
+                       triangle_angles)
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
 from ._thin import keep_thin, same_side
 from ._voronoi import vertex_normals
@@ -150,7 +152,20 @@ def repair_mesh(mesh: Mesh, *, speck_mm: float = 3.0, max_rounds: int = 4) -> tu
 
 def _defects(mesh, speck_mm):
     """What :func:`repair_mesh` would change: a set of ``'holes'``, ``'nonmanifold'``, ``'misoriented'``,
-    ``'unreferenced'``, ``'duplicates'``, ``'null'``, ``'specks'`` (empty: nothing)."""
+    ``'unreferenced'``, ``'duplicates'``, ``'null'``, ``'specks'`` (empty: nothing).  Computed once per mesh
+    and ``speck_mm`` (the mesh is immutable; repair asks again about the mesh it just checked)."""
+    known = _DEFECTS.get(mesh)
+    if known is not None and speck_mm in known:
+        return set(known[speck_mm])
+    out = _find_defects(mesh, speck_mm)
+    _DEFECTS.setdefault(mesh, {})[speck_mm] = frozenset(out)
+    return out
+
+
+_DEFECTS = weakref.WeakKeyDictionary()
+
+
+def _find_defects(mesh, speck_mm):
     q = mesh_quality(mesh)
     out = set()
     if q["boundary_edges"]:
@@ -162,8 +177,7 @@ def _defects(mesh, speck_mm):
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     if q["vertices"] != len(v):
         out.add("unreferenced")
-    order = np.lexsort(v.T)
-    if (np.diff(v[order], axis=0) == 0).all(axis=1).any():
+    if has_duplicate_vertices(mesh):
         out.add("duplicates")
     # a zero cross product of the edge vectors; the face figures' area is half its norm, from the same
     # quality pass (the cross product of (p1 - p0, p0 - p2) is that of (p1 - p0, p2 - p0) negated, exactly)
