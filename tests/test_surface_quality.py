@@ -78,3 +78,44 @@ def test_the_checks_can_tell():
     neg0 = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [np.inf, 0.0, 0.0], [np.inf, 0.0, 0.0]])
     assert has_duplicate_vertices(Mesh(neg0, np.zeros((0, 3), np.int64)))
     assert not has_duplicate_vertices(Mesh(neg0[2:], np.zeros((0, 3), np.int64)))  # inf - inf is not 0
+
+
+def _drop_specks_graph(mesh, speck_mm):
+    """The repair's speck removal as it was (scipy's graph components, ``np.minimum.at`` boxes)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
+    nv = len(v)
+    n, lab = connected_components(coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())),
+                                             shape=(nv, nv)), directed=False)
+    lo, hi = np.full((n, 3), np.inf), np.full((n, 3), -np.inf)
+    np.minimum.at(lo, lab, v)
+    np.maximum.at(hi, lab, v)
+    keep = (np.linalg.norm(hi - lo, axis=1) >= speck_mm)[lab[f[:, 0]]]
+    if not keep.any():
+        return None
+    used = np.zeros(nv, dtype=bool)
+    used[f[keep].ravel()] = True
+    return Mesh(v[used], (np.cumsum(used) - 1)[f[keep]])
+
+
+@pytest.mark.parametrize("seed", range(0, 40, 3))
+def test_compiled_pieces_and_specks_are_the_former_ones(seed):
+    from organlab.surface._repair import _drop_specks, _pieces
+
+    mesh, _ = _damaged(seed)
+    n, lab = _pieces(mesh.faces, len(mesh.vertices))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f, nv = mesh.faces, len(mesh.vertices)
+    old_n, old_lab = connected_components(coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())),
+                                                     shape=(nv, nv)), directed=False)
+    assert n == old_n and len(set(zip(lab.tolist(), old_lab.tolist()))) == n  # the same partition
+    # diagonals of the pieces: a speck size below, between and above them (a ball of these is 6-24 mm across)
+    for speck in (1.0, 9.0, 14.0, 40.0):
+        new, old = _drop_specks(mesh, speck), _drop_specks_graph(mesh, speck)
+        assert (new is None) == (old is None)
+        if old is not None:
+            assert np.array_equal(new.vertices, old.vertices) and np.array_equal(new.faces, old.faces)
