@@ -82,7 +82,7 @@ def _face_kernel(v, f, cmax, ratio, area):
 
 def nonmanifold_vertices(mesh):
     """Number of vertices whose faces do not form one edge-connected fan (bow-ties)."""
-    f = np.asarray(mesh.faces, dtype=np.int64)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int64)  # one specialisation of the kernels
     if len(f) == 0:
         return 0
     order, starts, counts = mesh._edges()
@@ -353,7 +353,7 @@ def _geometry(mesh):
 
 
 def _mesh_quality(mesh):
-    f = np.asarray(mesh.faces, dtype=np.int64)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int64)  # one specialisation of the kernels
     nv = len(mesh.vertices)
     if len(f) and (f.min() < 0 or f.max() >= nv):
         return _mesh_quality_graph(mesh)  # indices out of range: numpy's errors, as before

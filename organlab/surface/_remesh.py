@@ -752,9 +752,12 @@ def _fix_slivers(V, F, H, ref, rsize, *, min_angle, tol_mm, cos_fold, cos_turn, 
         nf = len(Fs)
         alive = np.ones(nf, dtype=bool)
         every, keep = np.arange(nf), np.zeros(nf, dtype=bool)
-        flips = _flip_edges(V, Fs, alive, edge.copy(), nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm, every, keep)
+        # (a ``geo`` array given, unread: the kernels' one specialisation, that of adaptive_remesh's sweeps)
+        flips = _flip_edges(V, Fs, alive, edge.copy(), nv, nf, -1.0, math.radians(0.1), cos_bad, tol_mm, every, keep,
+                            np.zeros(nf, dtype=bool))
         bad = _face_min_angles(V, Fs) < min_angle + 1.0
-        collapses = _collapse_short(V, Fs, H, alive, valive, edge.copy(), nv, nf, 1.0, 2.0, cos_turn, bad, every, keep)
+        collapses = _collapse_short(V, Fs, H, alive, valive, edge.copy(), nv, nf, 1.0, 2.0, cos_turn, bad, every, keep,
+                                    np.zeros(nf, dtype=bool))
         if collapses:
             alive_all[idx[~alive]] = False
             F[idx] = Fs
