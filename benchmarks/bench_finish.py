@@ -72,6 +72,10 @@ surface), repair 3.2-3.9 -> 1.9-2.3 s, the collapse kernel 1.5 -> 1.1 s and the 
 the run), adaptive_remesh 4.1-5.8 -> 4.0-4.5 s; 1 mm 0.47-0.50 -> 0.44-0.52 s (no change to read).  Left at
 0.25 mm: the closest-point queries (relaxations, deviation, stay_on_data: about 4 s), the first collapse sweeps
 on the 0.93 M raw faces (8 x 0.06-0.09 s), the raw surface's two edge sorts (organlab/mesh.py).
+The whole default ``organlab reconstruct`` of the true-camera sample (``with_true_cameras``), /usr/bin/time user +
+sys, 7 alternating pairs with 779e1a9 (16:00-16:32 UTC, load 3-13): 0.25 mm 20.5-26.5 s (median 23.7) -> 19.4-23.6 s
+(median 21.9), 1.0-4.3 s less in every pair (mean 2.8 s), peak RSS 948-961 -> 842-852 MB (the corner graphs
+of scipy's components gone), the same mesh.ply and mesh.stl bytes; 1 mm 3.95-4.19 s both (3 pairs), same files.
 The repeats now finish a new Mesh each time (before, the second and third reused the raw surface's cached edge
 table and quality figures: about 0.5 s less at 0.25 mm than a real run).
 """
