@@ -60,6 +60,24 @@ bench_viewer --sizes 1 --repeat 3 right after (loads 6-12, wall figures meaningl
 thread (dc59702 run next, at load 12: 0.565 s; the other stages 1.3-1.6x slower in that run), the full update 1.88 CPU
 s of the process (2.63); no numba kernel compiled by the viewer.  The final code (9da7026, 03:00 UTC, load 7-11, two more
 alternating rounds): 1 mm 0.61 / 0.71 -> 0.40 / 0.42 s, 0.25 mm 11.50 / 12.18 -> 9.15 / 9.62 s, peak 723-732 -> 649-654 MB.
+Issue 24 (helper `fin025`, 2026-12-04 15:35-16:20 UTC, load 6-13 on 2 cores, alternating with 779e1a9, ``--cache``,
+time.process_time per step of one run each, 4-5 rounds): the quality checks compiled (edge counts, pieces and
+referenced vertices in one pass over the edge table; a closed surface's vertex fans walked once instead of
+log2(valence) pointer-doubling passes; an open one's by union-find; the repair's duplicate-vertex check by hashing,
+its defects once per mesh, its specks by union-find), and the remesher's collapse and flip sweeps visit a face
+refused for its neighbourhood's shape again only when a face at one of its corners changed.  The same meshes bit
+for bit (sha1 of vertices, faces and report).  0.25 mm: finishing 11.2-14.6 -> 9.8-11.2 s; mesh_quality 2.5-3.0
+-> 1.5-2.0 s (9 checks; about 0.4 s of it is the process's first numba call, 0.45 s the edge sorts of the raw
+surface), repair 3.2-3.9 -> 1.9-2.3 s, the collapse kernel 1.5 -> 1.1 s and the flips 0.7 -> 0.5 s (sums over
+the run), adaptive_remesh 4.1-5.8 -> 4.0-4.5 s; 1 mm 0.47-0.50 -> 0.44-0.52 s (no change to read).  Left at
+0.25 mm: the closest-point queries (relaxations, deviation, stay_on_data: about 4 s), the first collapse sweeps
+on the 0.93 M raw faces (8 x 0.06-0.09 s), the raw surface's two edge sorts (organlab/mesh.py).
+The whole default ``organlab reconstruct`` of the true-camera sample (``with_true_cameras``), /usr/bin/time user +
+sys, 7 alternating pairs with 779e1a9 (16:00-16:32 UTC, load 3-13): 0.25 mm 20.5-26.5 s (median 23.7) -> 19.4-23.6 s
+(median 21.9), 1.0-4.3 s less in every pair (mean 2.8 s), peak RSS 948-961 -> 842-852 MB (the corner graphs
+of scipy's components gone), the same mesh.ply and mesh.stl bytes; 1 mm 3.95-4.19 s both (3 pairs), same files.
+The repeats now finish a new Mesh each time (before, the second and third reused the raw surface's cached edge
+table and quality figures: about 0.5 s less at 0.25 mm than a real run).
 """
 
 from __future__ import annotations
@@ -97,8 +115,11 @@ def _peak_mb():
 def _finish(raw, vs, foot, repeat):
     best = np.inf
     for _ in range(repeat):
+        # a new Mesh each time: a mesh caches its edge table and quality figures, which a second run on the same
+        # object would not compute (0.25 mm: about 0.5 s CPU left out of the repeats before 2026-12-04)
+        fresh = Mesh(raw.vertices.copy(), raw.faces.copy())
         t = _cpu()
-        fin = finish_surface(raw, voxel_size=vs, min_edge_mm=foot)
+        fin = finish_surface(fresh, voxel_size=vs, min_edge_mm=foot)
         best = min(best, _cpu() - t)
     return fin, best
 

@@ -19,17 +19,20 @@ are cut out and filled before remeshing, see :mod:`._folds`.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from numba import njit
 
 from ..errors import OrganlabError
 from ._deviation import _SURFACES, _deviation_figures, _distances, _Surface, _surface
 from ._folds import fold_edges
 from ._guard import keep_on_data, near_deviation
 from ._mesh import Mesh
-from ._quality import _face_figures, _moved, boundary_loops, has_null_faces, mesh_quality, triangle_angles
+from ._quality import (_face_figures, _find, _moved, boundary_loops, has_duplicate_vertices, has_null_faces, mesh_quality,
+                       triangle_angles)
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
 from ._thin import keep_thin, same_side
 from ._voronoi import vertex_normals
@@ -150,7 +153,20 @@ def repair_mesh(mesh: Mesh, *, speck_mm: float = 3.0, max_rounds: int = 4) -> tu
 
 def _defects(mesh, speck_mm):
     """What :func:`repair_mesh` would change: a set of ``'holes'``, ``'nonmanifold'``, ``'misoriented'``,
-    ``'unreferenced'``, ``'duplicates'``, ``'null'``, ``'specks'`` (empty: nothing)."""
+    ``'unreferenced'``, ``'duplicates'``, ``'null'``, ``'specks'`` (empty: nothing).  Computed once per mesh
+    and ``speck_mm`` (the mesh is immutable; repair asks again about the mesh it just checked)."""
+    known = _DEFECTS.get(mesh)
+    if known is not None and speck_mm in known:
+        return set(known[speck_mm])
+    out = _find_defects(mesh, speck_mm)
+    _DEFECTS.setdefault(mesh, {})[speck_mm] = frozenset(out)
+    return out
+
+
+_DEFECTS = weakref.WeakKeyDictionary()
+
+
+def _find_defects(mesh, speck_mm):
     q = mesh_quality(mesh)
     out = set()
     if q["boundary_edges"]:
@@ -162,8 +178,7 @@ def _defects(mesh, speck_mm):
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     if q["vertices"] != len(v):
         out.add("unreferenced")
-    order = np.lexsort(v.T)
-    if (np.diff(v[order], axis=0) == 0).all(axis=1).any():
+    if has_duplicate_vertices(mesh):
         out.add("duplicates")
     # a zero cross product of the edge vectors; the face figures' area is half its norm, from the same
     # quality pass (the cross product of (p1 - p0, p0 - p2) is that of (p1 - p0, p2 - p0) negated, exactly)
@@ -204,12 +219,34 @@ def _fan_loops(mesh):
 
 
 def _pieces(f, nv):
-    """``(n, label (nv,))``: the connected pieces of faces ``f`` ``(F, 3)`` int64 over ``nv`` vertices (by edges)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    """``(n, label (nv,))``: the connected pieces of faces ``f`` ``(F, 3)`` int64 over ``nv`` vertices (by edges);
+    each piece labelled by its smallest vertex (union-find: the partition scipy's graph components gave, in one
+    compiled pass instead of a sparse graph of 2F edges)."""
+    lab = _piece_roots(np.ascontiguousarray(f, dtype=np.int64), int(nv))
+    return int((lab == np.arange(nv)).sum()), lab
 
-    return connected_components(coo_matrix((np.ones(2 * len(f)), (f[:, :2].ravel(), f[:, 1:].ravel())),
-                                           shape=(nv, nv)), directed=False)
+
+@njit(cache=True, nogil=True)
+def _piece_roots(f, nv):
+    parent = np.arange(nv)
+    for t in range(f.shape[0]):
+        for i in range(2):
+            x, y = _find(parent, f[t, i]), _find(parent, f[t, i + 1])
+            if x != y:
+                parent[max(x, y)] = min(x, y)
+    for v in range(nv):
+        parent[v] = _find(parent, v)
+    return parent
+
+
+@njit(cache=True, nogil=True)
+def _piece_boxes(v, lab, lo, hi):
+    """Each piece's bounding box, in the rows of its label (the vertices' exact minima and maxima)."""
+    for i in range(v.shape[0]):
+        r = lab[i]
+        for k in range(3):
+            lo[r, k] = min(lo[r, k], v[i, k])
+            hi[r, k] = max(hi[r, k], v[i, k])
 
 
 def _drop_specks(mesh, speck_mm):
@@ -220,12 +257,13 @@ def _drop_specks(mesh, speck_mm):
     """
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
     nv = len(v)
-    n, lab = _pieces(f, nv)
-    lo = np.full((n, 3), np.inf)
-    hi = np.full((n, 3), -np.inf)
-    np.minimum.at(lo, lab, v)
-    np.maximum.at(hi, lab, v)
-    big = np.linalg.norm(hi - lo, axis=1) >= speck_mm
+    _, lab = _pieces(f, nv)
+    lo = np.full((nv, 3), np.inf)
+    hi = np.full((nv, 3), -np.inf)
+    _piece_boxes(np.ascontiguousarray(v, dtype=np.float64), lab, lo, hi)
+    roots = np.flatnonzero(lab == np.arange(nv))
+    big = np.zeros(nv, dtype=bool)
+    big[roots] = np.linalg.norm(hi[roots] - lo[roots], axis=1) >= speck_mm
     keep = big[lab[f[:, 0]]]
     if not keep.any():
         return None
