@@ -124,6 +124,7 @@ def main():
         ("finish_surface", "finishing"),
         ("measure_aaa", "AAA measures"),
         ("view_agreement", "agreement"),
+        ("hull_masks", "hull masks"),
         ("_report", "report"),
         ("model_warnings", "model checks"),
     ]:

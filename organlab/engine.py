@@ -40,10 +40,11 @@ import numpy as np
 
 from . import __version__, surface, validate
 from .checks import model_warnings, roi_faces_touched
-from .agreement import MANY_FLAGGED, ViewAgreement, suggest_angles, suggestion_text, view_agreement, worst_views
+from .agreement import (MANY_FLAGGED, ViewAgreement, hull_masks, suggest_angles, suggestion_text, view_agreement,
+                        worst_views)
 from .calibration import calibration_for
+from .cliparser import later
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
-from .coloring import DEFAULT_PHOTO_THRESHOLD, PIPELINE_OPTIONS, color_voxels, photo_carve, report_entry
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
 from .preflight import atomic_output_dir, available_memory, check_grid_memory, check_image_memory
@@ -53,6 +54,14 @@ from .session import Session, load_session, write_json
 from .silhouette import Silhouette, SilhouetteModel, silhouette
 from .surface import (color_vertices, finish_surface, is_aaa_session, measure, measure_aaa, mesh_from_field,
                       read_ply, release_heap)
+
+# The colouring (method != 'hull'): imported on its first use, so that the default run (the hull) does not load its
+# modules and kernels (0.1 s CPU of the command's imports, issue 24)
+DEFAULT_PHOTO_THRESHOLD = later("organlab.coloring", "DEFAULT_PHOTO_THRESHOLD")
+PIPELINE_OPTIONS = later("organlab.coloring", "PIPELINE_OPTIONS")
+color_voxels = later("organlab.coloring", "color_voxels")
+photo_carve = later("organlab.coloring", "photo_carve")
+report_entry = later("organlab.coloring", "report_entry")
 
 __all__ = ["Settings", "SettingsError", "STAGES", "DEPENDS", "METHODS", "HULL_METHODS", "Cancelled", "Engine",
            "Reconstruction", "AgreementFigures", "CalibrationStage", "CarvingStage", "ColoringStage", "SurfaceStage",
@@ -92,7 +101,7 @@ def color_threshold_range(method: str) -> ColorThresholdRange:
     (0.25, 'grey levels')
     """
     if method == "photo":
-        return ColorThresholdRange(0.05, 1.0, 0.01, "NCC gain", float(DEFAULT_PHOTO_THRESHOLD))
+        return ColorThresholdRange(0.05, 1.0, 0.01, "NCC gain", float(DEFAULT_PHOTO_THRESHOLD.resolve()))
     if method in ("coloring", "space_carving"):
         return ColorThresholdRange(1.0, 60.0, 0.5, "grey levels", None)
     raise SettingsError("method", f"has no colour threshold unless one of {METHODS[1:]}, got {method!r}")
@@ -816,6 +825,8 @@ class Engine:
         self.computed = {name: 0 for name in STAGES}
         self.timings: dict[str, float] = {}
         self.joint_summary: dict | None = None  # the joint silhouette step's last run (None: it did not run)
+        self._until: str | None = None  # the running run()'s last stage
+        self._hull_job: tuple | None = None  # (raw mesh, cameras, silhouettes, future of their hull_masks)
 
     @classmethod
     def from_views(cls, images: Sequence[np.ndarray] | None, silhouettes: Sequence[Silhouette], cameras: Sequence, *,
@@ -950,6 +961,7 @@ class Engine:
             raise SettingsError("until", f"must be one of {STAGES}, got {until!r}")
         clock = _Clock(progress, cancel)
         self._preflight(settings)
+        self._until, self._hull_job = until, None
         notify = on_stage or (lambda name, result: None)
         out = {}
         for name in STAGES:
@@ -1073,7 +1085,7 @@ class Engine:
         res = color_voxels(self.images, cameras, carved.occupancy, carved.grid, method=kind,
                            masks=[s.mask for s in sils], progress=bar,
                            threshold="auto" if settings.color_threshold is None else settings.color_threshold,
-                           **PIPELINE_OPTIONS)
+                           **PIPELINE_OPTIONS.resolve())
         bar.close()
         return ColoringStage(res.occupancy, res.colors, res.colored, float(res.threshold),
                              report_entry(res, carved.occupancy, carved.grid))
@@ -1101,15 +1113,26 @@ class Engine:
         # the stage 0.70x in wall time at 1 mm).  Not on big grids, where their peaks would add up (at
         # 0.25 mm the measures take +415 MB, finishing +702 MB; at 1 mm about +20 MB)
         pool = aaa_job = None
-        if measuring and settings.finish and grid.n_voxels <= _CONCURRENT_MEASURES_VOXELS:
+        small = grid.n_voxels <= _CONCURRENT_MEASURES_VOXELS
+        if measuring and settings.finish and small:
             pool = ThreadPoolExecutor(1, thread_name_prefix="organlab-aaa")
             aaa_job = pool.submit(_measure_beside, surface_of, grid)
-            pool.shutdown(wait=False)  # its thread ends with the job; a cancelled run does not wait for it
+        # the carved surface seen by every camera, for the agreement check (view_agreement's hull_masks), made on a
+        # second thread: the carved surface has 6x the finished one's faces at 0.25 mm, and these masks were 0.8 s
+        # of the check's 1.1 s CPU there.  Beside the finishing after the measures on small grids; on big ones after
+        # the finishing (beside the measures), whose peak their 11 MB of masks and 12 MB of buffers would raise
+        checking = settings.finish and STAGES.index(self._until or STAGES[-1]) >= STAGES.index("checks")
+        if checking and small:
+            pool = self._start_hull_masks(pool, raw, cameras, out["silhouettes"])
+        if pool is not None:
+            pool.shutdown(wait=False)  # its thread ends with the jobs; a cancelled run does not wait for them
         if settings.finish:
             footprint = pixel_footprint(cameras, grid)
             fin = finish_surface(raw, voxel_size=grid.voxel_size, min_edge_mm=footprint)
             mesh, steps = fin.mesh, {**fin.to_dict(), "pixel_footprint_mm": footprint}
             clock.check()
+        if checking and not small:
+            self._start_hull_masks(None, raw, cameras, out["silhouettes"]).shutdown(wait=False)
         aaa = error = None
         if measuring:
             try:
@@ -1133,7 +1156,7 @@ class Engine:
         names = self.names
         turntable = None if s is None else [s.views[i].pose is None for i in self.views]
         agr = view_agreement(surf.mesh, cameras, sils, voxel_size=grid.voxel_size, names=names, hull_mesh=surf.raw_mesh,
-                             turntable=turntable)
+                             turntable=turntable, hull_masks=self._made_hull_masks(surf.raw_mesh, cameras, sils))
         figures = AgreementFigures.from_agreement(agr, names)
         if s is None:  # views without a session: nothing of a session to report
             return ChecksStage(agr, figures, None)
@@ -1185,6 +1208,25 @@ class Engine:
         report["warnings"][:0] = model_warnings(cameras, occupancy, lo, hi, voxel_size=grid.voxel_size,
                                                 tolerance=int(settings.tolerance), disagreeing=disagreeing)
         return ChecksStage(agr, figures, report)
+
+    def _start_hull_masks(self, pool, raw, cameras, sils):
+        """Queue :func:`hull_masks` on ``pool`` (a new one-thread pool when None) for :meth:`_made_hull_masks`."""
+        pool = pool or ThreadPoolExecutor(1, thread_name_prefix="organlab-aaa")
+        self._hull_job = (raw, cameras, sils, pool.submit(hull_masks, raw, cameras, sils))
+        return pool
+
+    def _made_hull_masks(self, raw, cameras, sils):
+        """The hull masks made beside the finishing (:meth:`_run_surface`) when they are of this mesh, these
+        cameras and these silhouettes; else None (the check makes them)."""
+        job, self._hull_job = self._hull_job, None
+        if job is None or job[0] is not raw or job[2] is not sils or len(job[1]) != len(cameras):
+            return None
+        if any(a is not b for a, b in zip(job[1], cameras)):
+            return None
+        try:
+            return job[3].result()
+        except Exception:  # noqa: BLE001 (made again by the check, which reports its error)
+            return None
 
     def _angle_suggestions(self, grid, sils, cal, agr, names):
         """For a few flagged views whose poses come from their table angles: the angle each agrees best at."""
@@ -1429,7 +1471,7 @@ def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timi
         "mesh_area_mm2": m["area_mm2"],
         "watertight": m["watertight"],
         "voxel_size_mm": grid.voxel_size,
-        "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape), "occupied_voxels": int(occupancy.sum())},
+        "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape), "occupied_voxels": int(np.count_nonzero(occupancy))},
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
         "calibration": {"source": how, "rms_px": cal.rms_px, "turntable_rms_px": cal.turntable_rms_px},
         "views": [

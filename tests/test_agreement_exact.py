@@ -32,3 +32,34 @@ def test_distance_falls_back_to_scipy_where_float32_could_round():
     np.testing.assert_array_equal(_distance_to_background(s, where), ndimage.distance_transform_edt(s)[where])
     full = np.ones((5, 7), bool)
     np.testing.assert_array_equal(_distance_to_background(full, full), ndimage.distance_transform_edt(full)[full])
+
+
+def test_hull_masks_made_ahead_give_the_same_figures():
+    """view_agreement with the carved surface's masks made ahead (organlab.agreement.hull_masks, as the engine
+    makes them beside the finishing) gives every figure of the one that makes them itself; masks of another
+    count or shape are refused.  A sphere seen by 6 cameras, its hull carved at 4 mm (the raw IoU differs from
+    the model's, so a wrong mask would show)."""
+    from organlab.agreement import hull_masks, view_agreement
+    from organlab.carving import hull_field
+    from organlab.grid import VoxelGrid
+    from organlab.surface import mesh_from_field
+    from organlab.synthetic import Sphere, default_camera, render_masks
+
+    cams = [default_camera((160, 120)).at_table_angle(a) for a in range(0, 360, 60)]
+    sils = [c >= 0.5 for c in render_masks(Sphere(center=(0, 0, 40), radius=20), cams)]
+    grid = VoxelGrid.from_roi((-40, -40, 0), (40, 40, 80), 4.0)
+    raw = mesh_from_field(hull_field(sils, cams, grid, sparse=True), grid)
+    coarse = VoxelGrid.from_roi((-40, -40, 0), (40, 40, 80), 8.0)
+    model = mesh_from_field(hull_field(sils, cams, coarse, sparse=True), coarse)
+    masks = hull_masks(raw, cams, sils)
+    assert len(masks) == 6 and all(m.shape == (120, 160) and m.dtype == bool and m.any() for m in masks)
+    ahead = view_agreement(model, cams, sils, voxel_size=4.0, hull_mesh=raw, hull_masks=masks)
+    itself = view_agreement(model, cams, sils, voxel_size=4.0, hull_mesh=raw)
+    assert ahead.views == itself.views and ahead.worst == itself.worst and ahead.warnings == itself.warnings
+    assert any(v["raw_iou"] != v["iou"] for v in itself.views)
+    with pytest.raises(ValueError, match="hull_masks"):
+        view_agreement(model, cams, sils, voxel_size=4.0, hull_mesh=raw, hull_masks=masks[:5])
+    with pytest.raises(ValueError, match="shape"):
+        view_agreement(model, cams, sils, voxel_size=4.0, hull_mesh=raw, hull_masks=[m[:-1] for m in masks])
+    with pytest.raises(ValueError, match="hull_mesh"):
+        view_agreement(model, cams, sils, voxel_size=4.0, hull_masks=masks)

@@ -242,7 +242,9 @@ def test_no_import_by_a_computed_name():
 
 
 def test_lazy_imports_name_what_exists():
-    """Each ``later`` names a module and a callable in it (a typo would fail only when its command runs)."""
+    """Each ``later`` names a module and a callable in it (a typo would fail only when its command runs), or a
+    constant its caller reads with ``.resolve()`` (the engine's colouring defaults: the default run does not
+    load the colouring)."""
     import importlib
 
     lazy = [(m, node.lineno, *(a.value for a in node.args)) for m, p in MODULES.items()
@@ -250,7 +252,7 @@ def test_lazy_imports_name_what_exists():
             if isinstance(node, ast.Call) and _callee(node) == "later" and m not in DYNAMIC_OK]
     assert sum(m == "organlab.cli" for m, *_ in lazy) >= 10  # the command line's stage functions (--help's speed)
     bad = [f"{_where(m, line)}: {target}.{name}" for m, line, target, name in lazy
-           if target not in MODULES or not callable(getattr(importlib.import_module(target), name, None))]
+           if target not in MODULES or getattr(importlib.import_module(target), name, None) is None]
     assert not bad, "later() of a name its module does not define:\n" + "\n".join(bad)
 
 
@@ -384,3 +386,20 @@ def test_heavy_optional_libraries_load_lazily():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout
+
+
+def test_the_default_run_does_not_load_the_colouring():
+    """The engine imports the colouring (modules and numba kernels) on first use: the default command
+    (``method='hull'``) never loads it (0.1-0.3 s CPU of the command's imports, issue 24)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nimport organlab.pipeline, organlab.engine\n"
+            "from organlab.engine import color_threshold_range\n"
+            "before = 'organlab.coloring' in sys.modules\n"
+            "r = color_threshold_range('photo')\n"
+            "print(before, 'organlab.coloring' in sys.modules, r.default)\n")
+    env = {**__import__("os").environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["False", "True", "0.25"], out.stdout
