@@ -417,7 +417,9 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *
     for shared, free in kinds:
         m = replace(model, shared=shared, angles_free=free, slip_view=slip_view)
         p, x = _fit_candidate(m, H, cen, f, (pb.I, pb.J), low)
-        cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x)))
+        # scored on the tangents 'auto' reads (the foot's left out): a foot the fit trusts can be a cast shadow
+        score = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
+        cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x, score=score)))
     pick = cands[0]
     for c in cands[1:]:  # a richer model must do better by a margin
         if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
@@ -631,8 +633,15 @@ def _slip_entry(model, x, found):
             "rotation_deg": round(float(s[2]), 3), "cost_ratio": found.get("cost_ratio") if found else None}
 
 
-def _gate(pb, model, x):
-    """Leave-out folds: fit without views ``i % GATE_FOLDS == f``, score them against the others."""
+def _gate(pb, model, x, *, score=None):
+    """Leave-out folds: fit without views ``i % GATE_FOLDS == f`` (``pb``), score them against the others (on
+    ``score``'s tangents and weights: a :class:`Problem` of the same pairs; default ``pb``).
+
+    The fits weigh the foot tangents by their measured noise (:func:`_fit_candidate`); the score leaves them out, as
+    'auto' and the report's per-view RMS do.  Scored with them, the hard synthetic session (cast shadows at the foot,
+    +-10 % exposure; 12 views, self-calibrated, tests/test_backdrop.py) accepted a 0.74 degree camera turn (left-out
+    1.17 -> 0.91 px with the foot; 0.79 px without it before) and its volume went +0.49 -> -2.05 %."""
+    score = pb if score is None else score
     n = model.n
     x0 = np.zeros_like(x)
     bef, aft = np.full(n, np.nan), np.full(n, np.nan)
@@ -644,8 +653,8 @@ def _gate(pb, model, x):
             continue
         wts = (~(np.isin(pb.I, held) | np.isin(pb.J, held))).astype(np.float64)
         xf, _ = pb.fit(x, weights=wts)
-        b = pb.view_rms(x0, views=held, partners=kept)
-        a = pb.view_rms(xf, views=held, partners=kept)
+        b = score.view_rms(x0, views=held, partners=kept)
+        a = score.view_rms(xf, views=held, partners=kept)
         bef[held], aft[held] = b[held], a[held]
         folds.append({"left_out": [int(i) for i in held], "before_px": _f(np.nanmedian(b[held])), "after_px": _f(np.nanmedian(a[held]))})
     mb, ma = float(np.nanmedian(bef)), float(np.nanmedian(aft))
