@@ -1,5 +1,5 @@
 """argparse with one-line errors, for every organlab command line (``organlab``, ``organlab synth``), and
-:class:`later`, the command line's lazy import of a stage's function."""
+:class:`later`, the lazy import of a stage's function (the command line's, the engine's colouring)."""
 
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ class later:  # noqa: N801 (reads as the import statement it stands for)
     module : str
         Absolute module name, ``"organlab.pipeline"``.
     name : str
-        A callable of that module (function or class), ``"reconstruct"``.
+        A callable of that module (function or class), ``"reconstruct"``; or a constant, read with
+        :meth:`resolve` (the engine's colouring defaults: the default run does not load the colouring).
 
     Examples
     --------

@@ -1471,7 +1471,8 @@ def _report(session, views, grid, occupancy, mesh, cameras, cal, how, sils, timi
         "mesh_area_mm2": m["area_mm2"],
         "watertight": m["watertight"],
         "voxel_size_mm": grid.voxel_size,
-        "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape), "occupied_voxels": int(np.count_nonzero(occupancy))},
+        "grid": {"origin_mm": list(grid.origin), "shape": list(grid.shape),
+                 "occupied_voxels": int(np.count_nonzero(occupancy))},
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
         "calibration": {"source": how, "rms_px": cal.rms_px, "turntable_rms_px": cal.turntable_rms_px},
         "views": [

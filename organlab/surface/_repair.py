@@ -31,8 +31,8 @@ from ._deviation import _SURFACES, _deviation_figures, _distances, _Surface, _su
 from ._folds import fold_edges
 from ._guard import keep_on_data, near_deviation
 from ._mesh import Mesh
-from ._quality import (_face_figures, _find, _moved, boundary_loops, has_duplicate_vertices, has_null_faces, mesh_quality,
-                       triangle_angles)
+from ._quality import (_face_figures, _find, _moved, boundary_loops, has_duplicate_vertices, has_null_faces,
+                       mesh_quality, triangle_angles)
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
 from ._thin import keep_thin, same_side
 from ._voronoi import vertex_normals
