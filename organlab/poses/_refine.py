@@ -419,12 +419,12 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *
         p, x = _fit_candidate(m, H, cen, f, (pb.I, pb.J), low)
         # scored on the tangents 'auto' reads (the foot's left out): a foot the fit trusts can be a cast shadow
         score = Problem(m, H, cen, f, pairs=(pb.I, pb.J), low=low)
-        cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x, score=score)))
+        cands.append((m, p, x, _slip_entry(m, x, slip), _gate(p, m, x, score=score), score))
     pick = cands[0]
     for c in cands[1:]:  # a richer model must do better by a margin
         if c[4]["after_px"] < pick[4]["after_px"] - GATE_MIN_PX / 2:
             pick = c
-    model, pb, x, slip, gate = pick
+    model, pb, x, slip, gate, score = pick
     plate_entry = None
     if gate["accepted"] and model.kind == "turntable" and model.shared and plate is not None:
         # the camera moved: its distance to the axis and its height, which no silhouette shows, from the plate
@@ -433,7 +433,7 @@ def _refine(session, calibration, covs, cameras, mode, names, flag_px=FLAG_PX, *
     gate["candidates"] = {_kind(c[0]): _f(c[4]["after_px"]) for c in cands}
     gate["foot_weight"] = _f(pb.foot_weight)
     # each view's RMS after, over the tangents of its RMS before (the foot's left out, as 'auto' reads it)
-    after = Problem(model, H, cen, f, pairs=(pb.I, pb.J), low=low).view_rms(x)
+    after = score.view_rms(x)
     w, tau, d, s = model.split(x)
     R, t = model.poses(x)
     refined = [cam0.with_pose(R[i], t[i]) for i in range(model.n)]
