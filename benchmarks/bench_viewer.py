@@ -89,7 +89,7 @@ class Pieces:
     what ran beside what.
     """
 
-    ENGINE = ("refine_poses", "hull_field", "carve", "mesh_from_field", "finish_surface", "measure_aaa",
+    ENGINE = ("refine_poses", "hull_field", "carve", "mesh_from_field", "finish_surface", "measure_aaa", "hull_masks",
               "view_agreement")
     SCENE = ("set_voxels", "set_mesh", "set_aaa")
 

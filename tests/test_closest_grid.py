@@ -85,3 +85,36 @@ def test_faces_within_is_a_ball_query_of_the_centroids():
     for r in (0.5, 2.0, 7.0):
         want = np.isfinite(cKDTree(seeds).query(c, distance_upper_bound=r * (1 + 1e-12))[0])
         assert np.array_equal(_Surface(mesh).faces_within(seeds, r), want) and want.any()
+
+
+def test_chunked_queries_are_one_calls():
+    """Queries run in chunks on all cores (``_run_chunks``: a large query, and the deviation's two directions in one
+    go) give the single-threaded kernel's values bit for bit: empty, shorter than a chunk, several chunks and a partial
+    last one; two meshes in one call."""
+    from organlab.surface._deviation import _CHUNK, _closest_kernel, _distances, _run_chunks
+
+    sphere, sheet = _sphere(), _sheet()
+    rng = np.random.default_rng(3)
+    sets = [(s, rng.normal(scale=8.0, size=(n, 3))) for s, n in
+            ((sphere, 0), (sphere, 17), (sheet, 2 * _CHUNK + 5), (sphere, 5 * _CHUNK + 1))]
+    queries, outs, refs = [], [], []
+    for mesh, pts in sets:
+        surf = _Surface(mesh)
+        q, out = surf._query(pts)
+        if q is not None:
+            queries.append(q)
+        outs.append(out)
+        _, ref = surf._query(pts)
+        if len(pts):
+            _closest_kernel(np.ascontiguousarray(pts), 0, len(pts), *(q[1][:9] + ref))
+        refs.append(ref)
+    assert len(queries) == 3
+    _run_chunks(queries)
+    for out, ref in zip(outs, refs):
+        for a, b in zip(out, ref):
+            assert np.array_equal(a, b)
+    # the deviation's two directions in one call: each the same as its own query
+    d_out, d_in = _distances(sheet, sphere, _Surface(sphere))
+    fv, ff = np.asarray(sheet.vertices), np.asarray(sheet.faces)
+    assert np.array_equal(d_out, _Surface(sphere).closest(np.concatenate([fv, fv[ff].mean(axis=1)]))[1])
+    assert np.array_equal(d_in, _Surface(sheet).closest(sphere.vertices)[1])

@@ -29,8 +29,10 @@ _SURFACES = weakref.WeakKeyDictionary()
 #: (0.0324 / 0.7063 voxels); the candidate search is most of the time (0.10 s at 4, 0.14 s at 8, k-d tree).
 _K = 6
 
-#: Queries of at least this many points run on all cores (threads cost more below).
+#: Queries of at least this many points run on all cores (threads cost more below), in chunks of this many points
+#: that each thread takes in turn (:func:`_run_chunks`).
 _PARALLEL = 20_000
+_CHUNK = 2048
 
 
 #: The centroid grid's cell edge, in mean edge lengths of the mesh's faces, and at most this many cells per face
@@ -271,6 +273,46 @@ class _Grid:
         _grid_build(v, f, self.lo, self.cell, dims, self.gp, self.gface, self.starts)
 
 
+_POOL = {}  # process id -> (ThreadPoolExecutor, its number of threads): a forked child starts its own
+
+
+def _pool():
+    """``(pool, threads)``: the closest-point queries' helper threads (all cores but this one's, at most 3), started
+    once per process."""
+    got = _POOL.get(os.getpid())
+    if got is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        n = max(1, min(os.cpu_count() or 1, 4) - 1)
+        got = _POOL[os.getpid()] = (ThreadPoolExecutor(n, thread_name_prefix="organlab-closest"), n)
+    return got
+
+
+def _run_chunks(queries):
+    """Run :func:`_closest_kernel` over ``queries`` (``(points, args)`` pairs) in chunks of :data:`_CHUNK` points
+    that this thread and the helper threads take in turn until none is left.
+
+    The same kernel on the same points, so the same values as one call; taken in turn rather than cut in equal
+    shares, so a thread slowed by another's work beside it (the AAA measures beside the finishing, 2 cores) takes
+    fewer chunks instead of being waited for.
+    """
+    import itertools
+
+    chunks = [(q, i, min(i + _CHUNK, len(q[0]))) for q in queries for i in range(0, len(q[0]), _CHUNK)]
+    turn = itertools.count()  # next() on it is atomic under the GIL
+
+    def drain():
+        while (c := next(turn)) < len(chunks):
+            (points, args), i0, i1 = chunks[c]
+            _closest_kernel(points, i0, i1, *args)
+
+    pool, threads = _pool()
+    helpers = [pool.submit(drain) for _ in range(min(threads, len(chunks) - 1))]
+    drain()
+    for h in helpers:
+        h.result()
+
+
 def _surface(mesh):
     """The :class:`_Surface` of ``mesh``, built once per mesh (meshes are immutable)."""
     got = _SURFACES.get(mesh)
@@ -303,29 +345,24 @@ class _Surface:
 
     def closest(self, points, k=None):
         """``(closest (N, 3), distance (N,), face (N,))`` for ``points`` ``(N, 3)`` (among ``k`` candidate faces)."""
+        query, out = self._query(points, k)
+        if query is not None:
+            if len(query[0]) < _PARALLEL:
+                _closest_kernel(query[0], 0, len(query[0]), *query[1])
+            else:  # all cores for the large queries (the remesher's relaxations, the deviation), as the k-d tree's did
+                _run_chunks([query])
+        return out
+
+    def _query(self, points, k=None):
+        """``((points, kernel arguments) or None when there is nothing to do, (closest, distance, face))``: a query
+        for :func:`_closest_kernel` or :func:`_run_chunks`, and the arrays it fills."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         n = len(points)
         best, dist, face = np.empty((n, 3)), np.empty(n), np.empty(n, dtype=np.int64)
         k = self.k if k is None else min(k, len(self.f))
-        if n and k:
-            g = self.tree
-            args = (self.v, self.f, g.gp, g.gface, g.starts, g.lo, g.cell, g.dims, k, best, dist, face)
-            workers = min(os.cpu_count() or 1, 4) if n >= _PARALLEL else 1
-            if workers == 1:
-                _closest_kernel(points, 0, n, *args)
-            else:
-                # all cores for the large queries (the remesher's relaxations, the deviation), as the k-d tree's
-                # workers did: the nogil kernel on slices of the points, in threads (the same kernel, the same
-                # values; no parallel specialisation to compile)
-                from concurrent.futures import ThreadPoolExecutor
-
-                cut = [n * i // workers for i in range(workers + 1)]
-                with ThreadPoolExecutor(workers - 1, thread_name_prefix="organlab-closest") as pool:
-                    jobs = [pool.submit(_closest_kernel, points, cut[i], cut[i + 1], *args) for i in range(1, workers)]
-                    _closest_kernel(points, 0, cut[1], *args)
-                    for j in jobs:
-                        j.result()
-        return best, dist, face
+        g = self.tree
+        args = (self.v, self.f, g.gp, g.gface, g.starts, g.lo, g.cell, g.dims, k, best, dist, face)
+        return ((points, args) if n and k else None), (best, dist, face)
 
     def faces_within(self, seeds, radius):
         """``(F,)`` bool: the faces whose centroids lie within ``radius`` (mm) of one of ``seeds`` ``(S, 3)``."""
@@ -404,12 +441,10 @@ def _distances(finished, raw, rs):
         _, d_out, _ = rs.closest(pts)
         _, d_in, _ = _Surface(finished).closest(raw.vertices)
         return d_out, d_in
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(1, thread_name_prefix="organlab-deviation") as pool:
-        back = pool.submit(lambda: _Surface(finished).closest(raw.vertices)[1])
-        _, d_out, _ = rs.closest(pts)
-        return d_out, back.result()
+    q_out, (_, d_out, _) = rs._query(pts)
+    q_in, (_, d_in, _) = _Surface(finished)._query(raw.vertices)
+    _run_chunks([q for q in (q_out, q_in) if q is not None])
+    return d_out, d_in
 
 
 def _deviation_figures(d_out, d_in, voxel_size):
