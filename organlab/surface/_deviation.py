@@ -253,6 +253,30 @@ def _within(seeds, r, gp, gface, starts, lo, cell, dims, out):
                             out[gface[q]] = True
 
 
+@njit(cache=True, nogil=True)
+def _normal_sums(v, f):
+    """Each vertex's sum of its faces' cross products ``(V, 3)``: ``sum(np.bincount(f[:, i], fn[:, j]) for i in
+    range(3))`` per component ``j`` of ``fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])``, the
+    same operations in the same order (a sum per corner over the faces in order, then the corners' sums from 0):
+    the same bits, in one pass without the (F, 3) temporaries."""
+    nv = v.shape[0]
+    acc = np.zeros((3, nv, 3))
+    for t in range(f.shape[0]):
+        a, b, c = f[t, 0], f[t, 1], f[t, 2]
+        ux, uy, uz = v[b, 0] - v[a, 0], v[b, 1] - v[a, 1], v[b, 2] - v[a, 2]
+        wx, wy, wz = v[c, 0] - v[a, 0], v[c, 1] - v[a, 1], v[c, 2] - v[a, 2]
+        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        for i in range(3):
+            acc[i, f[t, i], 0] += nx
+            acc[i, f[t, i], 1] += ny
+            acc[i, f[t, i], 2] += nz
+    out = np.empty((nv, 3))
+    for q in range(nv):
+        for j in range(3):
+            out[q, j] = ((0.0 + acc[0, q, j]) + acc[1, q, j]) + acc[2, q, j]
+    return out
+
+
 class _Grid:
     """The faces' centroids bucketed into a uniform grid of cubes (:data:`_CELL_EDGES`)."""
 
@@ -337,10 +361,7 @@ class _Surface:
         """Area-weighted normals ``(V, 3)`` of the vertices (not normalized; computed once, one bincount per corner
         and component: 1 mm sample, 57 724 faces, about 10 ms)."""
         if self._vertex_normals is None:
-            v, f = self.v, self.f
-            fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-            self._vertex_normals = np.stack([sum(np.bincount(f[:, i], fn[:, j], len(v)) for i in range(3))
-                                             for j in range(3)], axis=1)
+            self._vertex_normals = _normal_sums(self.v, self.f)
         return self._vertex_normals
 
     def closest(self, points, k=None):

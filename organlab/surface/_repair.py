@@ -273,6 +273,28 @@ def _drop_specks(mesh, speck_mm):
     return Mesh(v[used], new[f[keep]])
 
 
+@njit(cache=True, nogil=True)
+def _taubin(v, indptr, indices, data, iterations, lambda_, mu):
+    """``v += step * (w @ v - v)`` for ``step`` in ``(lambda_, mu)``, ``iterations`` times, in place; ``w`` in CSR
+    (``indptr``, ``indices``, ``data``).  Each row's product summed from 0 in the stored order, as scipy's
+    ``csr_matvecs``; then numpy's operations of the expression, one element at a time: the same bits."""
+    n = v.shape[0]
+    y = np.empty_like(v)
+    for _ in range(iterations):
+        for step in (lambda_, mu):
+            for i in range(n):
+                a0 = a1 = a2 = 0.0
+                for jj in range(indptr[i], indptr[i + 1]):
+                    x, j = data[jj], indices[jj]
+                    a0 += x * v[j, 0]
+                    a1 += x * v[j, 1]
+                    a2 += x * v[j, 2]
+                y[i, 0], y[i, 1], y[i, 2] = a0, a1, a2
+            for i in range(n):
+                for c in range(3):
+                    v[i, c] += step * (y[i, c] - v[i, c])
+
+
 def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: float = -0.53) -> tuple[Mesh, dict]:
     """Taubin smoothing (shrink-free): relaxes the marching-cubes staircase.
 
@@ -306,9 +328,10 @@ def smooth_mesh(mesh: Mesh, *, iterations: int = 10, lambda_: float = 0.5, mu: f
     adj = coo_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(nv, nv)).tocsr()
     w = diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1.0)) @ adj
     v = np.array(mesh.vertices, dtype=np.float64)
-    for _ in range(int(iterations)):
-        v += lambda_ * (w @ v - v)
-        v += mu * (w @ v - v)
+    # v += lambda_ * (w @ v - v), then mu, compiled: scipy's products (each row's terms in w's order, from 0)
+    # and numpy's steps, so the same bits (1 mm sample 23 -> 15 ms, 0.25 mm 0.37 -> 0.26 s CPU)
+    _taubin(v, w.indptr.astype(np.int64), w.indices.astype(np.int64), w.data, int(iterations), float(lambda_),
+            float(mu))
     out = _moved(_oriented(Mesh(v, mesh.faces)), mesh)
     return out, _step("smooth", mesh, out, iterations=int(iterations))
 
