@@ -146,5 +146,5 @@ def test_compiled_sums_are_numpys_to_the_bit():
         for _ in range(4):
             a += 0.5 * (w @ a - a)
             a += -0.53 * (w @ a - a)
-        _taubin(b, w.indptr.astype(np.int64), w.indices.astype(np.int64), w.data, 4, 0.5, -0.53)
+        _taubin(b, w.indptr, w.indices, w.data, 4, 0.5, -0.53)
         assert a.tobytes() == b.tobytes()
