@@ -119,3 +119,24 @@ def test_compiled_pieces_and_specks_are_the_former_ones(seed):
         assert (new is None) == (old is None)
         if old is not None:
             assert np.array_equal(new.vertices, old.vertices) and np.array_equal(new.faces, old.faces)
+
+
+def test_moved_meshes_figures_are_their_own():
+    """A mesh with another's faces (``_moved``: smoothing, the volume restoration's offsets, one after another) takes
+    the other's topology figures and computes its own geometry when asked: the figures of a fresh computation, also at
+    the end of a chain of moves whose middle meshes were never asked about."""
+    from organlab.surface._quality import _moved, mesh_quality
+
+    grid = VoxelGrid(origin=(-8.0, -8.0, -8.0), voxel_size=1.0, shape=(17, 17, 17))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    base = mesh_from_field(np.clip(6.3 - np.sqrt(x**2 + 1.7 * y**2 + z**2), 0.0, 1.0), grid)
+    mesh_quality(base)
+    rng = np.random.default_rng(2)
+    chain = [base]
+    for _ in range(3):  # each moved from the last, only the last asked
+        chain.append(_moved(Mesh(chain[-1].vertices + rng.normal(scale=0.05, size=base.vertices.shape), base.faces),
+                            chain[-1]))
+    got = mesh_quality(chain[-1])
+    want = _mesh_quality(Mesh(chain[-1].vertices.copy(), base.faces.copy()))
+    assert got == want
+    assert got["volume_mm3"] != mesh_quality(base)["volume_mm3"]  # its own geometry, not the base's
