@@ -110,6 +110,10 @@ def test_chunked_queries_are_one_calls():
         refs.append(ref)
     assert len(queries) == 3
     _run_chunks(queries)
+    # no helper thread left alive: one would keep the command from its quick exit (cli._exit_now)
+    import threading
+
+    assert not [t for t in threading.enumerate() if t.name.startswith("organlab-closest") and t.is_alive()]
     for out, ref in zip(outs, refs):
         for a, b in zip(out, ref):
             assert np.array_equal(a, b)
