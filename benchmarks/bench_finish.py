@@ -76,6 +76,15 @@ The whole default ``organlab reconstruct`` of the true-camera sample (``with_tru
 sys, 7 alternating pairs with 779e1a9 (16:00-16:32 UTC, load 3-13): 0.25 mm 20.5-26.5 s (median 23.7) -> 19.4-23.6 s
 (median 21.9), 1.0-4.3 s less in every pair (mean 2.8 s), peak RSS 948-961 -> 842-852 MB (the corner graphs
 of scipy's components gone), the same mesh.ply and mesh.stl bytes; 1 mm 3.95-4.19 s both (3 pairs), same files.
+Issue 24 (helper `fin1`, 2026-12-04 18:30-19:10 UTC, load 1.4-5 on 2 cores, ``--cache``, alternating with 77e2ecf):
+the closest-point queries in chunks of 2 048 points taken in turn by daemon helper threads (the deviation's two
+directions in one call), the Taubin steps and vertex normal sums compiled, a moved mesh's face figures computed only
+when asked; the same meshes and reports (sha1) on the sample 1 mm (the viewer's and this script's raw surfaces),
+0.25 mm, the dino 1 mm and an occupancy.  1 mm: 0.44/0.46/0.49 -> 0.45/0.43/0.46 s CPU (3 rounds, best of 5; the
+pieces: Taubin loop 23 -> 15 ms, normal sums 14 -> 2 ms, two face-figure passes on the raw surface fewer); 0.25 mm:
+peak RSS 564/565 -> 539/540 MB, CPU 16.1/11.6 -> 10.7/12.2 s.  Left at 1 mm (profile, 0.45-0.6 s CPU): the
+remesher (adaptive_remesh + fit_faces, 0.39 s; its closest-point queries 0.22 s of the whole, about 1 us a point),
+the deviation (60 k points, 0.06 s), smoothing 0.03 s, the raw surface's quality 0.02 s.
 The repeats now finish a new Mesh each time (before, the second and third reused the raw surface's cached edge
 table and quality figures: about 0.5 s less at 0.25 mm than a real run).
 """
