@@ -133,7 +133,8 @@ def _as_band(field, grid, block=8):
     nb = [-(-s // block) for s in field.shape]
     full = np.full([b * block for b in nb], -0.5, dtype=np.float32)
     full[: field.shape[0], : field.shape[1], : field.shape[2]] = field
-    values = full.reshape(nb[0], block, nb[1], block, nb[2], block).transpose(0, 2, 4, 1, 3, 5).reshape(-1, block, block, block)
+    values = full.reshape(nb[0], block, nb[1], block, nb[2], block).transpose(0, 2, 4, 1, 3, 5)
+    values = values.reshape(-1, block, block, block)
     return BandField(grid, block, np.full(nb, 2, dtype=np.int8), np.arange(np.prod(nb), dtype=np.int32).reshape(nb),
                      np.ascontiguousarray(values))
 
