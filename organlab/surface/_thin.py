@@ -147,25 +147,36 @@ def thickened(raw, depth: float, min_mm: float, *, rounds: int = 4):
     (a ball with coverage fins 0.4 voxel thick, seed 1), which the sliver step's cuts then took out with the
     islands (1.4-2.2 voxels of raw surface lost).  Each vertex whose probe ``depth`` inward reaches the other side
     of its part (:func:`thin_vertices`) moves out along its normal by half of what the part lacks of ``min_mm``
-    there (the distance along its normal to the other side's closest point; at most ``min_mm / 2``), both sides
-    alike, ``rounds`` times.  The remesher then stays on this surface; no vertex is more than ``min_mm / 2`` off
-    the raw one.  ``raw`` itself (and 0) when no part is thinner.
+    there (the distance along its normal to the other side's closest point; at most ``min_mm / 2`` a round), both
+    sides alike, ``rounds`` times.  The remesher then stays on this surface (a plate 0.3 voxel thick: its vertices
+    moved 0.37 voxel at most, its two sheets 0.02-0.38 -> 0.40-0.80 voxel apart).  ``raw`` itself (and 0) when no
+    part is thinner.
     """
     F = np.asarray(raw.faces, dtype=np.int64)
     V = np.asarray(raw.vertices, dtype=np.float64)
     out, moved = raw, np.zeros(len(V), dtype=bool)
+    ask = np.arange(len(V))  # the vertices probed: all, then those within 2 rings of the last round's moves
     for _ in range(int(rounds)):
         surface = _surface(out)
-        n = surface.vertex_normal_sums()
+        n = surface.vertex_normal_sums()[ask]
         u = n / (np.linalg.norm(n, axis=1, keepdims=True) + 1e-300)
-        q, _, face = surface.closest(V - float(depth) * u)
+        q, _, face = surface.closest(V[ask] - float(depth) * u)
         other = ~same_side(surface, face, n)
-        lack = float(min_mm) - np.einsum("ij,ij->i", V - q, u)  # what the part lacks of min_mm along the normal
+        lack = float(min_mm) - np.einsum("ij,ij->i", V[ask] - q, u)  # what the part lacks of min_mm along the normal
         push = np.where(other, np.clip(0.5 * lack, 0.0, 0.5 * float(min_mm)), 0.0)
         step = push > 1e-6 * float(min_mm)
         if not step.any():
             break
-        moved |= step
-        V = V + push[:, None] * u
+        moved[ask[step]] = True
+        V = V.copy()
+        V[ask[step]] += push[step, None] * u[step]
         out = Mesh(V, F)
+        # a vertex farther than 2 rings from a move keeps its normal; its probe may reach a moved face of the other
+        # side, whose vertices move in the same rounds: not asked again (the dino at 1 mm: the same vertices, bit for
+        # bit, 0.22 -> 0.12 s CPU; fins 0.35-0.5 voxel thick: within 6e-7 mm)
+        near = np.zeros(len(V), dtype=bool)
+        near[ask[step]] = True
+        for _ in range(2):
+            near[F[near[F].any(axis=1)].ravel()] = True
+        ask = np.flatnonzero(near)
     return out, int(moved.sum())
