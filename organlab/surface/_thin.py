@@ -17,8 +17,8 @@ and the finished surface was 1.7 voxels off the raw one.
   places too, crossed or not, so that the remesher starts from one sheet, not a sheet partly smoothed and partly raw;
 - :func:`thickened`: before any of that, a part thinner than :data:`MIN_THICK_VOXELS` (a fin under half a voxel,
   which marching cubes gives as a lace of slabs a few hundredths of a voxel thick and rods along the grid's lines) is
-  made that thick, each side moved out by at most half of it; the remesher stays on that surface, and the volume
-  restored is still the raw one;
+  made that thick, each side moved out by about half of it; the remesher stays on that surface, whose volume
+  (the raw one and what the thickening added) is the one restored;
 - :func:`same_side`: a closest point whose face looks away from the moved vertex (normals more than 90
   degrees apart) is on the other side of a sheet, never on the vertex's own: the remesher's
   relaxations refuse it (the vertex keeps its place, as for their other refused moves) and
@@ -127,13 +127,12 @@ def keep_thin(smoothed, raw, *, rings: int = UNSMOOTH_RINGS, rounds: int = 6, de
     return Mesh(V, F), int(back.sum())
 
 
-
 #: The thickness (voxels) a part thinner than a voxel is given before remeshing (:func:`thickened`): each side moves
 #: out by at most half of it.  Chosen on balls with coverage fins at 1 mm (max deviation from the raw surface, voxels):
 #: 0.4-0.5 voxel thick, seeds 0-2, as they were 0.80-2.21 (19.5-21.6 deg); 0.2: 0.66-2.24 (one 0.13 deg); 0.3:
 #: 0.57-0.99; 0.4: 0.48-0.75.  With 0.4 (and 4 rounds) 0.35-0.55 voxel thick, seeds 3-8: 16 of 18 within, seed 7's
 #: fins (a plane within 0.2 degrees of the x axis: rods along the grid's lines) 1.33-3.49; 0.5: 0.45-1.54 there;
-#: 0.6: 0.40-0.80 on all of them, no sliver cut and no last step needed.
+#: 0.6: 0.38-0.80 on all of them, no last step needed (one sliver cut).
 MIN_THICK_VOXELS = 0.6
 
 
