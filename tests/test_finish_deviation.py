@@ -96,7 +96,10 @@ def test_thin_parts_stay_on_the_raw_surface(finished, kind):
 
     raw, res = finished[kind]
     assert res.watertight and res.final["min_angle_deg"] >= 20.0  # the FEA promises (measured 21.7-38.0)
-    assert abs(res.volume_change_pct) < 0.01  # the raw volume is restored (measured < 1e-4 %)
+    # the raw volume is restored (measured < 1e-4 %), with its parts thinner than 0.6 voxel made that thick
+    # (._thin.thickened: the shell's cut edge, 59 vertices, +0.034 %; the others have none)
+    thick = sum(st.get("vertices_thickened", 0) for st in res.steps)
+    assert abs(res.volume_change_pct) < (0.1 if thick else 0.01), (thick, res.volume_change_pct)
     # issue 21's bounds, by brute force both ways on every 5th vertex (measured: raw to finished max 0.09-0.43
     # voxel, finished to raw max 0.05-0.15; the mean 0.02-0.03)
     r2f, f2r = _brute(raw.vertices[::5], res.mesh), _brute(res.mesh.vertices[::5], raw)
@@ -186,9 +189,10 @@ def _finned_ball(voxel_size, seed, half=None):
 
 
 def _without_thin(monkeypatch):
-    """finish_surface as before the thin-part handling (._thin): no vertex put back after smoothing, every closest
-    point taken by the remesher's projections, whichever side of a thin part it is on."""
+    """finish_surface as before the thin-part handling (._thin): no part thickened, no vertex put back after
+    smoothing, every closest point taken by the remesher's projections, whichever side of a thin part it is on."""
     monkeypatch.setattr("organlab.surface._repair.keep_thin", lambda smoothed, raw, **kw: (smoothed, 0))
+    monkeypatch.setattr("organlab.surface._repair.thickened", lambda raw, depth, min_mm, **kw: (raw, 0))
     monkeypatch.setattr("organlab.surface._remesh.same_side", lambda surface, face, normals: np.ones(len(face), bool))
 
 
@@ -301,7 +305,10 @@ def _tunnels(seed):
 # 0.65 / 0.67 voxel; now cuts of 0.35 mm (64 and 49 faces): 0.55 / 0.52 voxel, volume +0.000 %, 25.6 / 22.0 degrees,
 # no last step.  The bounds: under the promised voxel with a margin (0.8), the volume within 0.05 % (a filled tunnel
 # is 1.4 %)
-@pytest.mark.parametrize("seed", [2, 4])
+# Since ._bandmesh.untie, seed 2's raw surface (its ball's samples at exactly 10 mm, 0.5, had left coincident
+# vertices) gives the remesher no face below the angle; seed 17 (of 0-23, the only other where it does) instead:
+# 40 faces cut at 0.35 mm, 0.77 voxel, volume +0.0001 %, 21.6 degrees.
+@pytest.mark.parametrize("seed", [4, 17])
 def test_a_thin_wall_over_a_tunnel_is_not_cut_away(seed, monkeypatch):
     # the cut on the case it was made for, the thin-part handling switched off (as above: with it, no face is left
     # below the angle for the cut, test_thin_parts_are_not_smoothed_through)

@@ -19,7 +19,7 @@ import numpy as np
 from ..bandfield import BandField
 from ..grid import VoxelGrid
 from ..mesh import Mesh
-from ._bandmesh import band_mesh, tie_level
+from ._bandmesh import band_mesh, tie_level, untie
 from ._classic_mc import classic_marching_cubes
 
 __all__ = ["Mesh", "mesh_from_volume", "mesh_from_field", "measure", "color_vertices"]
@@ -68,8 +68,8 @@ def mesh_from_volume(volume: np.ndarray, grid: VoxelGrid, *, level: float = 0.5,
     origin = np.asarray(grid.origin) - s
     for lev in (level, tie_level(level)):
         if method == "lewiner":
-            verts, faces, _, _ = marching_cubes(
-                padded, level=lev, spacing=(s, s, s), method="lewiner", allow_degenerate=False
+            verts, faces, _, _ = marching_cubes(  # samples exactly at the level would leave holes: see untie
+                untie(padded, lev), level=lev, spacing=(s, s, s), method="lewiner", allow_degenerate=False
             )
         else:
             verts, faces = classic_marching_cubes(padded, level, decider=method == "decider")

@@ -34,7 +34,7 @@ from ._mesh import Mesh
 from ._quality import (_face_figures, _find, _moved, boundary_loops, has_duplicate_vertices, has_null_faces,
                        mesh_quality, triangle_angles)
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
-from ._thin import keep_thin, same_side
+from ._thin import MIN_THICK_VOXELS, keep_thin, same_side, thickened
 from ._voronoi import vertex_normals
 
 
@@ -650,7 +650,8 @@ def finish_surface(
     keep_volume : bool
         After remeshing, offset the surface along its normals (by thousandths
         to hundredths of a mm) so that it encloses the repaired raw (or, for
-        a staircase, the smoothed) surface's volume again.
+        a staircase, the smoothed) surface's volume again, its parts thinner
+        than 0.6 voxel made that thick (:func:`._thin.thickened`).
 
     Returns
     -------
@@ -694,8 +695,12 @@ def finish_surface(
                 stair, thin = _staircase(out, repaired, float(voxel_size))
                 if thin:  # smoothing took vertices through a thin part: they go back to their raw places (._thin)
                     smoothed = out
-                    out, n = keep_thin(smoothed, repaired, depth=0.5 * float(voxel_size))
-                    steps.append(_step("thin", smoothed, out, vertices_kept=n))
+                    # parts thinner than MIN_THICK_VOXELS made that thick first, the surface remeshed onto (._thin)
+                    # (its volume is the one restored: a raw lace holds less than the part; 1 mm balls with coverage
+                    # fins 0.4-0.5 voxel thick: the raw 4.1-4.4 % under the true volume, the finished up to 1 % more)
+                    ref, thick = thickened(repaired, 0.5 * float(voxel_size), MIN_THICK_VOXELS * float(voxel_size))
+                    out, n = keep_thin(smoothed, ref, depth=0.5 * float(voxel_size))
+                    steps.append(_step("thin", smoothed, out, vertices_kept=n, vertices_thickened=thick))
                     guide = smoothed if n else None  # the edge lengths from the smoothed surface
                 if stair:
                     ref = out  # an occupancy's staircase is not data: the smoothed surface is the one to stay on
