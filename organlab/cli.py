@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .cliparser import OneLineParser as _Parser, later
+from .cliparser import OneLineParser as _Parser
 from .errors import OrganlabError, SettingsError
+from .lazy import later
 from .preflight import atomic_output_dir, check_output_dir, check_remesh_memory, lock_output_dir, parse_memory
 from .progress import NullProgress, ProgressBar
 from .session import load_session
