@@ -61,6 +61,7 @@ summary_table = later("organlab.pipeline", "summary_table")
 write_outputs = later("organlab.pipeline", "write_outputs")
 init_session = later("organlab.scaffold", "init_session")
 warm_kernels = later("organlab.silhouette", "warm_kernels")
+warm_hull_kernels = later("organlab.carving", "warm_kernels")
 warm_pose_kernels = later("organlab.poses", "warm_kernels")
 mesh_result = later("organlab.surface", "mesh_result")
 carved_depth_picture = later("organlab.coloring", "carved_depth_picture")
@@ -485,8 +486,9 @@ def _load_stages(ready):
     """Import the stages (numba, scipy, OpenCV: about 0.8 s CPU) and load the silhouettes' and the poses check's
     numba kernels from their cache (numba's own registries with the first one: 0.5 s), on a thread while
     ``reconstruct`` loads the session: Python holding the GIL here, decoding the images there (cv2 releases it).
-    Then ``ready`` is set and, while the silhouettes run, scipy.ndimage is imported (the AAA measures': 0.15 s
-    CPU, else imported on their thread beside the finishing, which it slowed).
+    Then ``ready`` is set and, while the silhouettes run, the thread loads the hull field's kernels (0.2 s CPU
+    that was the hull stage's) and imports scipy.ndimage (the AAA measures': 0.15 s CPU, else imported on their
+    thread beside the finishing, which it slowed).
     A failure here is left to the run itself, which imports and calls the same things and says what went wrong."""
     try:
         reconstruct.resolve()
@@ -497,8 +499,14 @@ def _load_stages(ready):
     finally:
         ready.set()
     try:
+        import numba
+
+        # the hull's parallel kernels run here beside the silhouettes: only with a threading layer that takes
+        # parallel kernels from two threads at once (workqueue aborts the process)
+        if numba.threading_layer() in ("omp", "tbb"):
+            warm_hull_kernels()
         import scipy.ndimage  # noqa: F401
-    except Exception:  # noqa: BLE001 (the measures report it)
+    except Exception:  # noqa: BLE001 (the run reports it)
         pass
 
 
