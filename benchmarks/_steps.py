@@ -53,6 +53,8 @@ class Steps:
         depth = getattr(self.local, "depth", 0)
         if depth:  # a wrapped step inside another: counted in the outer one
             return fn(*args, **kwargs)
+        if threading.current_thread().name == "organlab-load":  # the command's loading thread warming a stage
+            return fn(*args, **kwargs)  # (a tiny call, not the stage): its CPU stays in the step it overlaps
         if threading.current_thread() is not threading.main_thread():
             return self._beside(name, fn, *args, **kwargs)
         self.local.depth = depth + 1

@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .cliparser import OneLineParser as _Parser, later
+from .cliparser import OneLineParser as _Parser
 from .errors import OrganlabError, SettingsError
+from .lazy import later
 from .preflight import atomic_output_dir, check_output_dir, check_remesh_memory, lock_output_dir, parse_memory
 from .progress import NullProgress, ProgressBar
 from .session import load_session
@@ -60,6 +61,7 @@ summary_table = later("organlab.pipeline", "summary_table")
 write_outputs = later("organlab.pipeline", "write_outputs")
 init_session = later("organlab.scaffold", "init_session")
 warm_kernels = later("organlab.silhouette", "warm_kernels")
+warm_hull_kernels = later("organlab.carving", "warm_kernels")
 warm_pose_kernels = later("organlab.poses", "warm_kernels")
 mesh_result = later("organlab.surface", "mesh_result")
 carved_depth_picture = later("organlab.coloring", "carved_depth_picture")
@@ -470,23 +472,40 @@ def _reconstruct_locked(a):
 
 
 def _load_session(a):
-    """The session, loaded while a thread loads the stages (:func:`_load_stages`); both done on return."""
-    loading = threading.Thread(target=_load_stages, name="organlab-load", daemon=True)
+    """The session, loaded while a thread loads the stages (:func:`_load_stages`); both done on return (the
+    thread goes on with what the later stages import, beside the first ones)."""
+    ready = threading.Event()
+    loading = threading.Thread(target=_load_stages, args=(ready,), name="organlab-load", daemon=True)
     loading.start()  # the stages' modules and first kernels, while the session's images are decoded
     session = load_session(a.session, allow_outside_paths=bool(a.allow_outside_paths))
-    loading.join()
+    ready.wait()
     return session
 
 
-def _load_stages():
+def _load_stages(ready):
     """Import the stages (numba, scipy, OpenCV: about 0.8 s CPU) and load the silhouettes' and the poses check's
     numba kernels from their cache (numba's own registries with the first one: 0.5 s), on a thread while
     ``reconstruct`` loads the session: Python holding the GIL here, decoding the images there (cv2 releases it).
+    Then ``ready`` is set and, while the silhouettes run, the thread loads the hull field's kernels (0.2 s CPU
+    that was the hull stage's) and imports scipy.ndimage (the AAA measures': 0.15 s CPU, else imported on their
+    thread beside the finishing, which it slowed).
     A failure here is left to the run itself, which imports and calls the same things and says what went wrong."""
     try:
         reconstruct.resolve()
         warm_kernels()
         warm_pose_kernels()  # the poses check's edge coverage (45 ms CPU)
+    except Exception:  # noqa: BLE001 (the run reports it)
+        pass
+    finally:
+        ready.set()
+    try:
+        import numba
+
+        # the hull's parallel kernels run here beside the silhouettes: only with a threading layer that takes
+        # parallel kernels from two threads at once (workqueue aborts the process)
+        if numba.threading_layer() in ("omp", "tbb"):
+            warm_hull_kernels()
+        import scipy.ndimage  # noqa: F401
     except Exception:  # noqa: BLE001 (the run reports it)
         pass
 

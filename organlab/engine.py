@@ -43,10 +43,10 @@ from .checks import model_warnings, roi_faces_touched
 from .agreement import (MANY_FLAGGED, ViewAgreement, hull_masks, suggest_angles, suggestion_text, view_agreement,
                         worst_views)
 from .calibration import calibration_for
-from .cliparser import later
 from .carving import BandField, ProgressiveCarver, carve, carving_views, hull_field
 from .errors import CalibrationError, OrganlabError, SessionError, SettingsError
 from .grid import VoxelGrid
+from .lazy import later
 from .preflight import atomic_output_dir, available_memory, check_grid_memory, check_image_memory
 from .poses import MODES as POSE_MODES, refine_poses
 from .progress import NullProgress

@@ -91,19 +91,23 @@ def bytes_per_voxel(*, method="hull", tolerance=0):
 
 
 def available_memory():
-    """Memory available to this process now, bytes (psutil; /proc/meminfo; 4 GiB if unknown)."""
+    """Memory available to this process now, bytes (the kernel's MemAvailable; psutil elsewhere; 4 GiB if unknown).
+
+    /proc/meminfo first: on Linux psutil reads the same line, and importing it cost 19 ms of the command's
+    start-up (issue 24).
+    """
     try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:  # not Linux (or a kernel before 3.14): psutil's estimate
         import psutil
 
         return int(psutil.virtual_memory().available)
-    except Exception:  # psutil missing or unusable: the kernel's own estimate
-        try:
-            for line in Path("/proc/meminfo").read_text().splitlines():
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-        except OSError:
-            pass
-    return 4 << 30
+    except Exception:  # noqa: BLE001 (psutil missing or unusable)
+        return 4 << 30
 
 
 _UNITS = {"": 1, "b": 1, "k": 1 << 10, "kb": 1 << 10, "kib": 1 << 10, "m": 1 << 20, "mb": 1 << 20, "mib": 1 << 20,

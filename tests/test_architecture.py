@@ -6,7 +6,7 @@ A *unit* is a top-level module (``organlab.camera``) or a top-level package (``o
 with every module inside it).  A unit may import units of its own floor or of the floors below;
 the test-data generators may be imported only by the faces (and the tests).
 
-An import is a statement, or ``name = later("organlab.module", "name")`` (organlab.cliparser.later: the command
+An import is a statement, or ``name = later("organlab.module", "name")`` (organlab.lazy.later: the command
 line's stage functions, imported on their first call so that ``organlab --help`` loads no stage); both are held
 to every rule, and no module computes the name of a module it imports.
 """
@@ -24,7 +24,7 @@ PKG = ROOT / "organlab"
 #: Floors, bottom first.  Keep docs/architecture.md's table equal to this (tested).
 FLOORS = {
     "ground": {"errors", "validate", "camera", "grid", "mesh", "bandfield", "masks", "raster", "nbcam", "session",
-               "progress", "cliparser", "preflight"},
+               "progress", "cliparser", "lazy", "preflight"},
     "stages": {"calibration", "capture", "silhouette", "poses", "carving", "coloring", "surface", "agreement",
                "checks", "scaffold"},
     "engine": {"engine", "pipeline", "batch"},
@@ -97,7 +97,7 @@ def _imports(module, path):
                         out.append((child.lineno, sub, None, in_function))
                     else:
                         out.append((child.lineno, target, a.name, in_function))
-            elif isinstance(child, ast.Call) and _callee(child) == "later":  # organlab.cliparser.later: a lazy import
+            elif isinstance(child, ast.Call) and _callee(child) == "later":  # organlab.lazy.later: a lazy import
                 args = [a.value for a in child.args if isinstance(a, ast.Constant) and isinstance(a.value, str)]
                 if len(args) == 2 == len(child.args) and not child.keywords:
                     out.append((child.lineno, args[0], args[1], in_function))
@@ -114,7 +114,7 @@ def _callee(call):
 
 #: Where a module name may be computed: the package's own lazy names (``organlab.__getattr__``, the public face,
 #: outside the floors) and ``later`` itself.  Everywhere else an import is a statement or ``later`` with literals.
-DYNAMIC_OK = {"organlab", "organlab.cliparser"}
+DYNAMIC_OK = {"organlab", "organlab.lazy"}
 
 
 def _dynamic_imports(path):
@@ -286,9 +286,9 @@ def test_the_rules_catch_a_bad_module(rule, tmp_path, monkeypatch):
         "climb": ("camera", "from .pipeline import reconstruct\n", None, None),
         "local": ("camera", "def f():\n    from .grid import VoxelGrid\n", None, None),
         "underscore": ("camera", "from .carving._band import band_field\n", None, None),
-        "lazy climb": ("camera", "from .cliparser import later\nrun = later('organlab.pipeline', 'reconstruct')\n",
+        "lazy climb": ("camera", "from .lazy import later\nrun = later('organlab.pipeline', 'reconstruct')\n",
                        None, None),
-        "lazy local": ("camera", "from .cliparser import later\ndef f():\n    return later('organlab.grid', 'VoxelGrid')\n",
+        "lazy local": ("camera", "from .lazy import later\ndef f():\n    return later('organlab.grid', 'VoxelGrid')\n",
                        None, None),
         "computed": ("camera", "import importlib\nrun = importlib.import_module('organlab.' + 'pipeline')\n", None, None),
     }[rule]

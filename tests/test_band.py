@@ -123,3 +123,42 @@ def test_band_field_equals_the_dense_field_on_a_scene_no_default_saw(specimen, v
     assert 0 < len(band.values) and band.n_band_voxels < 0.5 * grid.n_voxels
     # blocks were decided both ways without computing them
     assert (band.states == 0).any() and (band.states == 1).any()
+
+
+def test_warm_kernels_load_what_the_hull_calls():
+    """``carving.warm_kernels`` (the command calls it on its loading thread, beside the silhouettes: issue 24) must
+    load every specialisation a real hull then calls, or the hull stage loads (and a fresh clone compiles) the
+    others on the critical path.  In a new process: after it, a hull of six rendered views of a sphere (float32
+    coverage, as the silhouettes give) adds no signature to the band's, the distance images' and the band field's
+    kernels.  Measured: 7 kernels hold a signature, 0 new ones."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import numpy as np
+        from numba.core.dispatcher import Dispatcher
+        import organlab.bandfield as bf
+        from organlab.carving import _band, _field, hull_field, warm_kernels
+        from organlab.grid import VoxelGrid
+        from organlab.synthetic import Sphere, default_camera, render_masks
+
+        def sigs():
+            return {f"{m.__name__}.{k}": set(map(str, v.signatures)) for m in (_band, _field, bf)
+                    for k, v in vars(m).items() if isinstance(v, Dispatcher)}
+
+        warm_kernels()
+        before = sigs()
+        cams = [default_camera((160, 120)).at_table_angle(a) for a in range(0, 360, 60)]
+        covs = [np.asarray(c, np.float32) for c in render_masks(Sphere(center=(0, 0, 40), radius=20), cams)]
+        field = hull_field(covs, cams, VoxelGrid.from_roi((-40, -40, 0), (40, 40, 80), 2.0), sparse=True)
+        assert field.n_inside() > 0 and field.occupancy().any()
+        after = sigs()
+        print("USED", sum(bool(s) for s in after.values()))
+        print("NEW", sorted(f"{k} {s}" for k in after for s in after[k] - before[k]))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1]).stdout
+    used = int(out.split("USED")[1].split()[0])
+    assert used >= 7, out  # _outline_distance, _signed, _classify, _paint, _band_values, _count_inside, _fill_occupancy
+    assert out.split("NEW")[1].strip() == "[]", out

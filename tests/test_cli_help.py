@@ -69,7 +69,7 @@ def test_version_from_the_installed_command():
 
 
 #: What ``organlab --help`` may load: the package's light names and the ground floor the parser needs.
-_HELP_LOADS = {"organlab", "organlab.cli", "organlab.cliparser", "organlab.errors", "organlab.preflight",
+_HELP_LOADS = {"organlab", "organlab.cli", "organlab.cliparser", "organlab.lazy", "organlab.errors", "organlab.preflight",
                "organlab.progress", "organlab.session", "organlab.validate", "organlab.camera", "organlab.grid"}
 
 

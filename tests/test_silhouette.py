@@ -203,3 +203,24 @@ def test_li_threshold_is_scikit_images_to_the_bit():
         assert got.dtype == want.dtype == np.float32
         assert got == want
         assert auto_threshold(d) == float(want)
+
+
+def test_default_silhouettes_import_no_skimage_filters():
+    """Li's threshold (the default) is our own: the silhouettes of the sample import neither skimage.filters nor
+    scipy.ndimage (82 modules, 0.15-0.2 s CPU that both silhouette threads waited on in the command, issue 24);
+    'otsu' still reads skimage's (and imports it).  In a new process, 6 of the sample's views."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys\nimport organlab as ol\nfrom organlab.silhouette import SilhouetteModel, auto_threshold\n"
+            "s = ol.load_session('sample_sessions/aaa_phantom')\n"
+            "model = SilhouetteModel.from_session(s, views=range(6))\n"
+            "assert all(x.mask.any() for x in model.silhouettes())\n"
+            "print('LI', 'skimage.filters' in sys.modules, 'scipy.ndimage' in sys.modules)\n"
+            "auto_threshold(model.differences[0], method='otsu')\n"
+            "print('OTSU', 'skimage.filters' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root).stdout
+    assert "LI False False" in out, out
+    assert "OTSU True" in out, out

@@ -11,12 +11,13 @@ Public functions are re-exported from private modules:
   hull's surface, for sub-voxel surfaces; computed in a narrow band around
   the surface, and kept there with ``sparse=True`` (:class:`BandField`, with
   ``dense()``, ``occupancy()`` and ``mesh()``);
-* :func:`carving_views` -- the first view that carves each voxel (carve by view).
+* :func:`carving_views` -- the first view that carves each voxel (carve by view);
+* :func:`warm_kernels` -- load the hull field's kernels ahead of its first call.
 """
 
 from ..bandfield import BandField
 from ._bbox import ProgressiveCarver, carve, carve_reference
 from ._by_view import carving_views
-from ._field import hull_field
+from ._field import hull_field, warm_kernels
 
-__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field", "BandField", "carving_views"]
+__all__ = ["carve", "carve_reference", "ProgressiveCarver", "hull_field", "BandField", "carving_views", "warm_kernels"]

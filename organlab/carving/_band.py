@@ -83,24 +83,34 @@ def _threshold_px(camera, grid):
     return 1.1 * grid.voxel_size * mag / zmin + 1e-3
 
 
-@njit(cache=True, parallel=True)
-def _view_tables(stack, whs, tpx):
-    """Per view, summed-area tables (H + 1, W + 1) int32 of ``sdf >= T`` and ``sdf <= -T``."""
-    nv, hmax, wmax = stack.shape
+def _view_tables(sdfs, hmax, wmax, tpx):
+    """Per view, summed-area tables (H + 1, W + 1) int32 of ``sdf >= T`` and ``sdf <= -T``, as a
+    ``(V, hmax + 1, wmax + 1)`` pair (zero beyond a smaller view's table).
+
+    ``cv2.integral`` of the two masks: the same integers as summing them in a numba kernel, at about
+    0.04 s CPU for the sample's 36 views of 640 x 480 px against its 0.10-0.13 s (best of 10; issue 24).
+    The comparisons are float32 against ``T`` rounded up to float32 (:func:`_at_least_float32`), the
+    same as comparing in float64.
+    """
+    import cv2
+
+    nv = len(sdfs)
     sats_in = np.zeros((nv, hmax + 1, wmax + 1), dtype=np.int32)
     sats_out = np.zeros((nv, hmax + 1, wmax + 1), dtype=np.int32)
-    for v in prange(nv):
-        t = tpx[v]
-        for r in range(whs[v, 1]):
-            a_in = 0
-            a_out = 0
-            for c in range(whs[v, 0]):
-                d = stack[v, r, c]
-                a_in += d >= t
-                a_out += d <= -t
-                sats_in[v, r + 1, c + 1] = sats_in[v, r, c + 1] + a_in
-                sats_out[v, r + 1, c + 1] = sats_out[v, r, c + 1] + a_out
+    for v, s in enumerate(sdfs):
+        h, w = s.shape
+        t = _at_least_float32(tpx[v])
+        s = np.asarray(s, dtype=np.float32)
+        sats_in[v, : h + 1, : w + 1] = cv2.integral((s >= t).view(np.uint8), sdepth=cv2.CV_32S)
+        sats_out[v, : h + 1, : w + 1] = cv2.integral((s <= -t).view(np.uint8), sdepth=cv2.CV_32S)
     return sats_in, sats_out
+
+
+def _at_least_float32(t):
+    """The smallest float32 ``>= t`` (a float): for float32 ``d``, ``d >= t`` exactly when ``d >= it``, and
+    ``d <= -t`` exactly when ``d <= -it`` (no float32 lies between the two)."""
+    t32 = np.float32(t)
+    return np.nextafter(t32, np.float32(np.inf)) if float(t32) < float(t) else t32  # compared as doubles
 
 
 # --------------------------------------------------------- classification
@@ -292,7 +302,7 @@ def band_field(sdfs, cameras, grid, *, tolerance, min_views, block=4, levels=4):
         stack = np.zeros((nv, hmax, wmax), dtype=np.float32)
         for v, s in enumerate(sdfs):
             stack[v, : s.shape[0], : s.shape[1]] = s
-    sats_in, sats_out = _view_tables(stack, whs, tpx)
+    sats_in, sats_out = _view_tables(sdfs, hmax, wmax, tpx)
 
     states = np.zeros(tuple(nb), dtype=np.int8)
     top = -(-nb // (1 << L))
