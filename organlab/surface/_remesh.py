@@ -476,12 +476,35 @@ def _retest(F, alive, lock, lock0, keep, geo, pending, todo, nf, nv):
     return out[:n]
 
 
+@njit(cache=True, nogil=True)
 def _compact(V, F, H, alive, valive, nv, nf):
-    f = F[:nf][alive[:nf]]
-    used = np.zeros(nv, dtype=bool)
-    used[f.ravel()] = True
-    new = np.cumsum(used) - 1
-    return V[:nv][used].copy(), new[f], H[:nv][used].copy()
+    """The live faces (in order) and the vertices they use (in order, renumbered): ``(V, F, H)`` new arrays (one
+    pass each, for numpy's masks, cumsum and fancy indexing: 1 mm sample, six calls, 10 -> 2 ms)."""
+    new = np.full(nv, -1, dtype=np.int64)
+    m = 0
+    for t in range(nf):
+        if alive[t]:
+            m += 1
+            for i in range(3):
+                new[F[t, i]] = 0
+    n = 0
+    for v in range(nv):
+        if new[v] == 0:
+            new[v] = n
+            n += 1
+    V2, H2, F2 = np.empty((n, 3)), np.empty(n), np.empty((m, 3), dtype=np.int64)
+    for v in range(nv):
+        j = new[v]
+        if j >= 0:
+            V2[j, 0], V2[j, 1], V2[j, 2] = V[v, 0], V[v, 1], V[v, 2]
+            H2[j] = H[v]
+    m = 0
+    for t in range(nf):
+        if alive[t]:
+            for i in range(3):
+                F2[m, i] = new[F[t, i]]
+            m += 1
+    return V2, F2, H2
 
 
 def _vertex_normals(V, F):
