@@ -877,16 +877,16 @@ def _relax(V, F, H, ref, rsize, relax):
     # a vertex whose closest point is far from where it moved (another sheet of a thin part) stays, nor one on the
     # other side of a thin part (._thin.same_side); compiled: the numpy version's same bits, 16 -> 3 ms a mesh of
     # 10 k vertices (1 mm sample: six rounds, 25 ms of numpy temporaries)
-    V2, H2 = np.empty_like(V), np.empty_like(H)
-    _accept(V, H, q, dist, face, n, ref.v, ref.f, rsize, SAME_SIDE, V2, H2)
-    return V2, H2
+    # (in place: V and H are adaptive_remesh's own, fresh from _compact)
+    _accept(V, H, q, dist, face, n, ref.v, ref.f, rsize, SAME_SIDE)
+    return V, H
 
 
 @njit(cache=True, nogil=True)
-def _accept(V, H, q, dist, face, n, rv, rf, rsize, sides, outV, outH):
+def _accept(V, H, q, dist, face, n, rv, rf, rsize, sides):
     """:func:`_relax`'s choice per vertex: ``q`` (its closest point on the reference's face ``face``) where it lies
     within half the vertex's size of where it moved and that face looks the same way as ``n`` (the vertex's
-    normal; when ``sides``), with the face's smallest size; else the vertex and its size as they were.  The same
+    normal; when ``sides``), with the face's smallest size, into ``V`` and ``H``; else they stay.  The same
     operations as ``(dist <= 0.5 * H) & (np.einsum("ij,ij->i", np.cross(e1, e2), n) > 0)`` and ``np.where``
     (numpy 2.4's einsum sums a row of three products as ``(p0 + p2) + p1``): the same bits."""
     for i in range(V.shape[0]):
@@ -896,11 +896,8 @@ def _accept(V, H, q, dist, face, n, rv, rf, rsize, sides, outV, outH):
         wx, wy, wz = rv[c, 0] - rv[a, 0], rv[c, 1] - rv[a, 1], rv[c, 2] - rv[a, 2]
         nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
         if dist[i] <= 0.5 * H[i] and (not sides or (nx * n[i, 0] + nz * n[i, 2]) + ny * n[i, 1] > 0.0):
-            outV[i, 0], outV[i, 1], outV[i, 2] = q[i, 0], q[i, 1], q[i, 2]
-            outH[i] = min(min(rsize[a], rsize[b]), rsize[c])
-        else:
-            outV[i, 0], outV[i, 1], outV[i, 2] = V[i, 0], V[i, 1], V[i, 2]
-            outH[i] = H[i]
+            V[i, 0], V[i, 1], V[i, 2] = q[i, 0], q[i, 1], q[i, 2]
+            H[i] = min(min(rsize[a], rsize[b]), rsize[c])
 
 
 def fit_faces(mesh: Mesh, reference: Mesh, *, min_angle: float = 20.0, factor: float = 1.0) -> Mesh:
