@@ -85,6 +85,17 @@ pieces: Taubin loop 23 -> 15 ms, normal sums 14 -> 2 ms, two face-figure passes 
 peak RSS 564/565 -> 539/540 MB, CPU 16.1/11.6 -> 10.7/12.2 s.  Left at 1 mm (profile, 0.45-0.6 s CPU): the
 remesher (adaptive_remesh + fit_faces, 0.39 s; its closest-point queries 0.22 s of the whole, about 1 us a point),
 the deviation (60 k points, 0.06 s), smoothing 0.03 s, the raw surface's quality 0.02 s.
+Issue 24 (helper `rem1`, 2026-12-04 19:15-19:50 UTC, load 1-3 on 2 cores, ``--cache``, alternating with b64c22b): the
+remesher's numpy glue compiled with the numpy operations in the same order (the relaxation's choice per vertex, in
+place; fit_faces' gaps and centroids; _compact; numpy 2.4's einsum sums three products as ``(p0 + p2) + p1``), and the
+grid's k-nearest search skipping whole slabs of cells (the same cells in the same order).  The same meshes (sha1 of
+vertices and faces) on the sample 1 mm and 0.25 mm, the dino 1 mm and two fin scenes.  1 mm, CPU best of 5, 3 rounds
+in each of two sets: 0.58/0.58/0.52 -> 0.51/0.51/0.47 s and 0.62/0.64/0.65 -> 0.56/0.57/0.57 s.  Pieces (perf_counter,
+best of 5 runs): the relaxations' numpy after their queries 25 -> 3 ms, fit_faces 51 -> 19 ms (its query 25 ms of the
+first), _compact 10 -> 3.5 ms; the closest-point kernel (about 1.2 us a point, 121 k points a finishing, 0.1-0.15 s)
+unchanged within the noise.  0.25 mm: 10.2-14.2 s CPU both (noise), peak 534-541 MB (539-540).  Left at 1 mm: the
+closest points (96 ms of the remesher's 225), the collapse sweeps 64 ms, flips 25 ms; warm-starting the relaxations'
+queries would need each vertex's candidates carried through the splits and collapses, not tried.
 The repeats now finish a new Mesh each time (before, the second and third reused the raw surface's cached edge
 table and quality figures: about 0.5 s less at 0.25 mm than a real run).
 """
