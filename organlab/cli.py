@@ -505,6 +505,9 @@ def _load_stages(ready):
         # parallel kernels from two threads at once (workqueue aborts the process)
         if numba.threading_layer() in ("omp", "tbb"):
             warm_hull_kernels()
+    except Exception:  # noqa: BLE001 (no layer chosen yet, or the run reports it)
+        pass
+    try:
         import scipy.ndimage  # noqa: F401
     except Exception:  # noqa: BLE001 (the run reports it)
         pass
