@@ -108,21 +108,29 @@ def test_parts_thinner_than_a_voxel_keep_their_shape(scene):
     assert abs(fin.volume_change_pct) < 1.0, fin.volume_change_pct
 
 
+def _plate_on_ball(half):
+    """A plate ``2 * half`` mm thick (1 mm voxels, coverage field) on a 6 mm ball: the raw surface, and masks of its
+    vertices on the plate's flat middle (off its rims) and on the ball away from the plate."""
+    grid = VoxelGrid(origin=(-14.0,) * 3, voxel_size=1.0, shape=(29, 29, 29))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    ball = np.sqrt(x**2 + y**2 + z**2) - 6.0
+    plate = np.maximum.reduce([np.abs(z - 0.1) - half, np.abs(y) - 5.0, x - 12.0, -x])
+    raw = mesh_from_field(np.clip(0.5 - np.minimum(ball, plate), 0.0, 1.0).astype(np.float32), grid)
+    v = raw.vertices
+    on_plate = (v[:, 0] > 7.5) & (v[:, 0] < 11.5) & (np.abs(v[:, 1]) < 4.0)
+    on_ball = (np.linalg.norm(v, axis=1) < 6.5) & (np.abs(v[:, 2]) > 3.0)
+    return raw, on_plate, on_ball
+
+
 def test_thin_vertices_finds_the_parts_thinner_than_twice_the_depth():
     """A plate 0.6 mm thick (1 mm voxels, coverage field) on a 6 mm ball: the plate's vertices away from the ball are
     thin, the ball's away from the plate are not (a probe half a voxel deep stays inside it)."""
     from organlab.surface._deviation import _surface
     from organlab.surface._thin import thin_vertices
 
-    grid = VoxelGrid(origin=(-14.0,) * 3, voxel_size=1.0, shape=(29, 29, 29))
-    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
-    ball = np.sqrt(x**2 + y**2 + z**2) - 6.0
-    plate = np.maximum.reduce([np.abs(z - 0.1) - 0.3, np.abs(y) - 5.0, x - 12.0, -x])
-    raw = mesh_from_field(np.clip(0.5 - np.minimum(ball, plate), 0.0, 1.0).astype(np.float32), grid)
+    raw, on_plate, on_ball = _plate_on_ball(0.3)
     v = raw.vertices
     thin = thin_vertices(_surface(raw), 0.5)
-    on_plate = (v[:, 0] > 7.5) & (v[:, 0] < 11.5) & (np.abs(v[:, 1]) < 4.0)  # its flat middle, off its rims
-    on_ball = (np.linalg.norm(v, axis=1) < 6.5) & (np.abs(v[:, 2]) > 3.0)
     assert on_plate.sum() > 30 and on_ball.sum() > 100
     # measured: every flat-plate vertex thin, no ball vertex
     assert thin[on_plate].all()
@@ -179,15 +187,9 @@ def test_thickened_gives_a_part_thinner_than_a_voxel_its_thickness():
     0.02-0.38 mm apart; thickened to 0.6 mm, each sheet moves out, the ball stays where it is."""
     from organlab.surface._thin import thickened
 
-    grid = VoxelGrid(origin=(-14.0,) * 3, voxel_size=1.0, shape=(29, 29, 29))
-    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
-    ball = np.sqrt(x**2 + y**2 + z**2) - 6.0
-    plate = np.maximum.reduce([np.abs(z - 0.1) - 0.15, np.abs(y) - 5.0, x - 12.0, -x])
-    raw = mesh_from_field(np.clip(0.5 - np.minimum(ball, plate), 0.0, 1.0).astype(np.float32), grid)
+    raw, on_plate, on_ball = _plate_on_ball(0.15)
     v = raw.vertices
     out, n = thickened(raw, 0.5, 0.6)
-    on_plate = (v[:, 0] > 7.5) & (v[:, 0] < 11.5) & (np.abs(v[:, 1]) < 4.0)  # its flat middle, off its rims
-    on_ball = (np.linalg.norm(v, axis=1) < 6.5) & (np.abs(v[:, 2]) > 3.0)
     assert on_plate.sum() > 30 and on_ball.sum() > 100 and np.array_equal(out.faces, raw.faces)
     assert np.abs(v[on_plate, 2] - 0.1).min() < 0.05  # the case is real: the sheets nearly touch (0.009 mm)
     # measured: every plate vertex at least 0.199 mm from the middle plane (0.4 mm apart), none of the ball's moved,
