@@ -199,7 +199,9 @@ def test_thickened_gives_a_part_thinner_than_a_voxel_its_thickness():
     assert 0 < n < len(v) and np.linalg.norm(out.vertices - v, axis=1).max() < 0.4
     assert out.volume > raw.volume
     # a part already thicker is left alone: the ball alone is returned as it is
-    alone = mesh_from_field(np.clip(0.5 - ball, 0.0, 1.0).astype(np.float32), grid)
+    grid = VoxelGrid(origin=(-14.0,) * 3, voxel_size=1.0, shape=(29, 29, 29))
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    alone = mesh_from_field(np.clip(6.5 - np.sqrt(x**2 + y**2 + z**2), 0.0, 1.0).astype(np.float32), grid)
     assert thickened(alone, 0.5, 0.6) == (alone, 0)
 
 
