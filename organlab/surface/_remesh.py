@@ -892,9 +892,7 @@ def _accept(V, H, q, dist, face, n, rv, rf, rsize, sides):
     for i in range(V.shape[0]):
         t = face[i]
         a, b, c = rf[t, 0], rf[t, 1], rf[t, 2]
-        ux, uy, uz = rv[b, 0] - rv[a, 0], rv[b, 1] - rv[a, 1], rv[b, 2] - rv[a, 2]
-        wx, wy, wz = rv[c, 0] - rv[a, 0], rv[c, 1] - rv[a, 1], rv[c, 2] - rv[a, 2]
-        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        nx, ny, nz = _normal(rv[a], rv[b], rv[c])
         if dist[i] <= 0.5 * H[i] and (not sides or (nx * n[i, 0] + nz * n[i, 2]) + ny * n[i, 1] > 0.0):
             V[i, 0], V[i, 1], V[i, 2] = q[i, 0], q[i, 1], q[i, 2]
             H[i] = min(min(rsize[a], rsize[b]), rsize[c])
@@ -948,16 +946,10 @@ def _fit_gaps(V, F, c, q, face, rv, rf, sides, out):
     cnt = np.zeros((3, nv), dtype=np.int64)
     for t in range(F.shape[0]):
         r = face[t]
-        a, b, e = rf[r, 0], rf[r, 1], rf[r, 2]
-        ux, uy, uz = rv[b, 0] - rv[a, 0], rv[b, 1] - rv[a, 1], rv[b, 2] - rv[a, 2]
-        wx, wy, wz = rv[e, 0] - rv[a, 0], rv[e, 1] - rv[a, 1], rv[e, 2] - rv[a, 2]
-        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        nx, ny, nz = _normal(rv[rf[r, 0]], rv[rf[r, 1]], rv[rf[r, 2]])
         gap = (((q[t, 0] - c[t, 0]) * nx + (q[t, 2] - c[t, 2]) * nz) + (q[t, 1] - c[t, 1]) * ny) / (
             math.sqrt((nx * nx + ny * ny) + nz * nz) + 1e-300)
-        a, b, e = F[t, 0], F[t, 1], F[t, 2]
-        ux, uy, uz = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
-        wx, wy, wz = V[e, 0] - V[a, 0], V[e, 1] - V[a, 1], V[e, 2] - V[a, 2]
-        mx, my, mz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        mx, my, mz = _normal(V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
         if sides and not ((nx * mx + nz * mz) + ny * my > 0.0):
             gap = 0.0
         for i in range(3):
