@@ -18,6 +18,7 @@ from numba import njit
 import weakref
 
 from ..mesh import Mesh
+from ._geom import _centroid, _normal3
 
 _SURFACES = weakref.WeakKeyDictionary()
 
@@ -54,7 +55,7 @@ def _grid_build(v, f, lo, cell, dims, gp, gface, starts):
     for t in range(nf):
         a, b, c = f[t, 0], f[t, 1], f[t, 2]
         for k in range(3):
-            cen[t, k] = ((v[a, k] + v[b, k]) + v[c, k]) / 3.0  # as numpy's v[f].mean(axis=1)
+            cen[t, k] = _centroid(v, a, b, c, k)  # as numpy's v[f].mean(axis=1)
         i = min(max(int(math.floor((cen[t, 0] - lo[0]) / cell)), 0), dims[0] - 1)
         j = min(max(int(math.floor((cen[t, 1] - lo[1]) / cell)), 0), ny - 1)
         k_ = min(max(int(math.floor((cen[t, 2] - lo[2]) / cell)), 0), nz - 1)
@@ -274,9 +275,7 @@ def _normal_sums(v, f):
     acc = np.zeros((3, nv, 3))
     for t in range(f.shape[0]):
         a, b, c = f[t, 0], f[t, 1], f[t, 2]
-        ux, uy, uz = v[b, 0] - v[a, 0], v[b, 1] - v[a, 1], v[b, 2] - v[a, 2]
-        wx, wy, wz = v[c, 0] - v[a, 0], v[c, 1] - v[a, 1], v[c, 2] - v[a, 2]
-        nx, ny, nz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        nx, ny, nz = _normal3(v[a, 0], v[a, 1], v[a, 2], v[b, 0], v[b, 1], v[b, 2], v[c, 0], v[c, 1], v[c, 2])
         for i in range(3):
             acc[i, f[t, i], 0] += nx
             acc[i, f[t, i], 1] += ny

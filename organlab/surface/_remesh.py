@@ -35,33 +35,20 @@ from numba import njit
 
 from ..mesh import Mesh
 from ._deviation import _Surface, _surface
+from ._geom import _centroid, _normal, _normal3
 from ._thin import same_side
 
 #: The projections refuse a closest point on a face looking away from the vertex's (the other side of a thin part,
 #: :func:`._thin.same_side`); False only to measure what that rule does (tests switch it off).
 SAME_SIDE = True
 
-# ------------------------------------------------------------------ small geometry helpers
+# ------------------------------------------------------------------ small geometry helpers (a face's normal and
+# centroid: ._geom, shared with ._deviation)
 
 
 @njit(cache=True, inline="always")
 def _sub(V, a, b):
     return V[a, 0] - V[b, 0], V[a, 1] - V[b, 1], V[a, 2] - V[b, 2]
-
-
-@njit(cache=True, nogil=True)
-def _normal(p0, p1, p2):
-    ux, uy, uz = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
-    vx, vy, vz = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
-    return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _normal3(x0, y0, z0, x1, y1, z1, x2, y2, z2):
-    """:func:`_normal` of three points given by their coordinates (no arrays: the same arithmetic)."""
-    ux, uy, uz = x1 - x0, y1 - y0, z1 - z0
-    vx, vy, vz = x2 - x0, y2 - y0, z2 - z0
-    return uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
 
 
 @njit(cache=True, nogil=True)
@@ -528,11 +515,7 @@ def _star_sums(V, F, nrm, mean):
     acc_w = np.zeros((3, nv))
     for t in range(F.shape[0]):
         a, b, c = F[t, 0], F[t, 1], F[t, 2]
-        e1x, e1y, e1z = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
-        e2x, e2y, e2z = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
-        nx = e1y * e2z - e1z * e2y
-        ny = e1z * e2x - e1x * e2z
-        nz = e1x * e2y - e1y * e2x
+        nx, ny, nz = _normal3(V[a, 0], V[a, 1], V[a, 2], V[b, 0], V[b, 1], V[b, 2], V[c, 0], V[c, 1], V[c, 2])
         area = np.sqrt(nx * nx + ny * ny + nz * nz)
         for i in range(3):
             v = F[t, i]
@@ -930,7 +913,7 @@ def _centroids(V, F, out):
     """The faces' centroids, as ``V[F].mean(axis=1)`` (the same bits)."""
     for t in range(F.shape[0]):
         for k in range(3):
-            out[t, k] = ((V[F[t, 0], k] + V[F[t, 1], k]) + V[F[t, 2], k]) / 3.0
+            out[t, k] = _centroid(V, F[t, 0], F[t, 1], F[t, 2], k)
 
 
 @njit(cache=True, nogil=True)
