@@ -96,6 +96,22 @@ first), _compact 10 -> 3.5 ms; the closest-point kernel (about 1.2 us a point, 1
 unchanged within the noise.  0.25 mm: 10.2-14.2 s CPU both (noise), peak 534-541 MB (539-540).  Left at 1 mm: the
 closest points (96 ms of the remesher's 225), the collapse sweeps 64 ms, flips 25 ms; warm-starting the relaxations'
 queries would need each vertex's candidates carried through the splits and collapses, not tried.
+Issue 24 (helper `remw`, 2026-12-04 21:40-22:10 UTC, load 3-8 on 2 cores, ``--cache``, alternating with 672b505): the
+face normal and centroid kernels moved to surface/_geom (shared by _deviation and _remesh), the same meshes (sha1)
+on the sample 1 mm and 0.25 mm (two raw surfaces each), the dino 1 mm, coverage fins 0.4 s0, occupancy 0.6 s1;
+1 mm 0.47/0.42/0.38 -> 0.38/0.39/0.35 s CPU (best of 5, 3 rounds: the noise), 0.25 mm 9.99/10.00/10.25 ->
+9.59/9.74/9.96 s, peak 534-567 -> 537-541 MB.  Where the 1 mm finishing goes (0.41-0.46 s CPU, process_time per
+step, median of 5): the closest-point queries 175 ms (11 a run, 181 k points, 0.7-1.2 us a point: staircase 5 773,
+the remesher's start 28 864, six relaxations 10 469-12 786 at k = 4, fit_faces 20 934, the deviation 31 403 +
+28 864), collapse sweeps 55, mesh_quality 40, smoothing 30, repair 25, flips 25, _retest 14, volume 12, splits 10.
+A warm start of the queries cannot pay: given each point's exact k-th centroid distance in advance (the best
+bound a previous face could give), the relaxations' search reads 31.1 centroids a point instead of 34.5 and 7.6
+cells instead of 8.5, 0-7 % of the search (5.4-5.9 -> 5.2-5.5 ms a query; the search is 70 % of the kernel); grid
+cells of 1, 1.5 and 3 mean edges are all slower than 2 (the same results), inlining the search 3 %.  In the
+command, finish_surface runs once, and its first call loads 21 numba kernels from the cache (0.12 s CPU; the
+first call 0.57-0.61 s against 0.38-0.44 s for the next ones, after other kernels loaded numba's registries); a
+tiny finish_surface beforehand (a 13^3 ball, 0.17-0.22 s CPU, e.g. on the command's loading thread) brings the
+first call to 0.50 s.
 The repeats now finish a new Mesh each time (before, the second and third reused the raw surface's cached edge
 table and quality figures: about 0.5 s less at 0.25 mm than a real run).
 """
