@@ -118,15 +118,23 @@ def _opencv_calibrate(obj, pts, image_size, fix_k3):
     import cv2
 
     flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
-    out = cv2.calibrateCameraExtended(
-        [obj.astype(np.float32)] * len(pts),
-        [p.astype(np.float32).reshape(-1, 1, 2) for p in pts],
-        tuple(int(s) for s in image_size),
-        None,
-        None,
-        flags=flags,
-        criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12),
-    )
+    # on OpenCV's threads the fit's sums come out in another order from run to run: the same corners gave six
+    # different calibrations in six calls (differing about 1e-10 relative), and so every later stage's bits;
+    # on one thread it is the same calibration every time (a few ms for a few dozen boards)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        out = cv2.calibrateCameraExtended(
+            [obj.astype(np.float32)] * len(pts),
+            [p.astype(np.float32).reshape(-1, 1, 2) for p in pts],
+            tuple(int(s) for s in image_size),
+            None,
+            None,
+            flags=flags,
+            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12),
+        )
+    finally:
+        cv2.setNumThreads(threads)
     _, K, dist, rvecs, tvecs, std_int = out[:6]
     std_int = np.asarray(std_int, np.float64).ravel()
     dist = np.asarray(dist, np.float64).ravel()[:5]
