@@ -1089,13 +1089,16 @@ class Engine:
         The check mostly finds the poses right (every slider move of the viewer re-checks them): the carving
         then takes this field, computed with the very cameras it carves with, instead of starting it after
         the check (:meth:`_run_carving` takes it only when the check left the cameras as they were; else it
-        stops it and carves with the corrected ones).
+        stops it and carves with the corrected ones).  Small grids only (as the measures beside the finishing):
+        when the check goes on to refine, the field runs beside the fits to its end, unused.
         """
         if not SPECULATIVE_FIELD or settings.refine_poses != "auto" or settings.hull == "thesis":
             return None
         if STAGES.index(self._until or STAGES[-1]) < STAGES.index("carving"):
             return None
         sils, cameras, grid = out["silhouettes"], list(out["calibration"].cameras), self.grid(settings)
+        if grid.n_voxels > _CONCURRENT_MEASURES_VOXELS:  # a field lost to a correction costs up to 2.5 s (0.25 mm)
+            return None
         stop = threading.Event()
 
         def progress(done, total):  # after each view's distance image
