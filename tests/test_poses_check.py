@@ -158,17 +158,19 @@ def test_outline_rays_of_the_box_are_the_whole_frames():
 
 def test_warm_kernels_load_the_specialisation_the_check_calls(scene):
     """``organlab.poses.warm_kernels`` (the reconstruct command runs it on a thread while the session loads) must load
-    the very specialisation the check calls, or the check still pays the load (45 ms CPU): after the check, warming
-    adds no signature."""
-    from organlab.poses import _outline, warm_kernels
-    from organlab.poses._refine import _outlines
+    the very specialisations the check calls (the edge coverage's, the outline points'), or the check still pays the
+    load (45 ms CPU): after the check, warming adds no signature."""
+    from organlab.poses import _outline, _refine, _tangents, warm_kernels
 
     _, s, cal, sils, model = scene
-    _outlines(list(sils), as_arrays(list(sils), "coverage"), model.images, np.asarray(model.background))  # as the stage
-    used = set(_outline._band_coverage.signatures)
-    assert used
+
+    boxes, _ = _refine._outlines(list(sils), as_arrays(list(sils), "coverage"), model.images,
+                                 np.asarray(model.background))  # as the stage
+    _refine._outline_rays(boxes[0], cal.cameras(s)[0])
+    used = set(_outline._band_coverage.signatures), set(_tangents._profile_kernel.signatures)
+    assert all(used)
     warm_kernels()
-    assert set(_outline._band_coverage.signatures) == used
+    assert (set(_outline._band_coverage.signatures), set(_tangents._profile_kernel.signatures)) == used
 
 
 def test_check_outlines_are_the_former_codes_bit_for_bit(scene, monkeypatch):
