@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Sequence
@@ -827,6 +828,7 @@ class Engine:
         self.joint_summary: dict | None = None  # the joint silhouette step's last run (None: it did not run)
         self._until: str | None = None  # the running run()'s last stage
         self._hull_job: tuple | None = None  # (raw mesh, cameras, silhouettes, future of their hull_masks)
+        self._field_job: _FieldJob | None = None  # the hull field started beside the poses check (_run_poses)
 
     @classmethod
     def from_views(cls, images: Sequence[np.ndarray] | None, silhouettes: Sequence[Silhouette], cameras: Sequence, *,
@@ -964,12 +966,17 @@ class Engine:
         self._until, self._hull_job = until, None
         notify = on_stage or (lambda name, result: None)
         out = {}
-        for name in STAGES:
-            clock.check()
-            out[name] = self._stage(name, settings, clock, out, notify)
-            notify(name, out[name])
-            if name == until:
-                break
+        try:
+            for name in STAGES:
+                clock.check()
+                out[name] = self._stage(name, settings, clock, out, notify)
+                notify(name, out[name])
+                if name == until:
+                    break
+        finally:  # a field started beside the poses check and not taken (an error, a cancel): stopped
+            job, self._field_job = self._field_job, None
+            if job is not None:
+                job.stop.set()
         return self._reconstruction(settings, out)
 
     def _preflight(self, settings):
@@ -1046,6 +1053,7 @@ class Engine:
         # the images and the empty scene that made the silhouettes: sub-pixel outlines for the tangents
         model = self._model if self._silhouettes is None else None
         keyed = model is None or model.keyed or model.background is None
+        self._field_job = self._start_field(settings, clock, out)
         return refine_poses(self.session, cal.calibration, out["silhouettes"], mode=settings.refine_poses,
                             cameras=cal.cameras, names=list(self.names), images=None if keyed else model.images,
                             background=None if keyed else model.background)
@@ -1054,8 +1062,14 @@ class Engine:
         sils, cameras = out["silhouettes"], _cameras(out)
         grid = self.grid(settings)
         bar = clock.bar("carving")
+        job, self._field_job = self._field_job, None
+        if job is not None and not job.fits(sils, cameras, grid, settings.tolerance):
+            job.stop.set()  # the poses check moved the cameras: carved again with them
+            job = None
         if settings.hull == "thesis":
             occupancy, field = carve(sils, cameras, grid, tolerance=settings.tolerance), None
+        elif job is not None:  # the field of these very silhouettes, cameras, grid and tolerance, started beside the check
+            field, occupancy = job.future.result(), None
         else:  # the field in a narrow band about the surface: cost grows with the surface, not the volume
             field = hull_field(sils, cameras, grid, tolerance=settings.tolerance, progress=bar, sparse=True)
             occupancy = None  # made when first read (CarvingStage.occupancy): after the surface
@@ -1068,6 +1082,35 @@ class Engine:
                 "(check the calibration, the roi and the threshold)"
             )
         return CarvingStage(grid, occupancy, field)
+
+    def _start_field(self, settings, clock, out):
+        """The hull field of the calibration's cameras started on a thread beside the poses check ('auto'), or None.
+
+        The check mostly finds the poses right (every slider move of the viewer re-checks them): the carving
+        then takes this field, computed with the very cameras it carves with, instead of starting it after
+        the check (:meth:`_run_carving` takes it only when the check left the cameras as they were; else it
+        stops it and carves with the corrected ones).  Small grids only (as the measures beside the finishing):
+        when the check goes on to refine, the field runs beside the fits to its end, unused.
+        """
+        if not SPECULATIVE_FIELD or settings.refine_poses != "auto" or settings.hull == "thesis":
+            return None
+        if STAGES.index(self._until or STAGES[-1]) < STAGES.index("carving"):
+            return None
+        sils, cameras, grid = out["silhouettes"], list(out["calibration"].cameras), self.grid(settings)
+        if grid.n_voxels > _CONCURRENT_MEASURES_VOXELS:  # a field lost to a correction costs up to 2.5 s (0.25 mm)
+            return None
+        stop = threading.Event()
+
+        def progress(done, total):  # after each view's distance image
+            if stop.is_set():
+                raise Cancelled
+            clock.check()
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="organlab-field")
+        future = pool.submit(hull_field, sils, cameras, grid, tolerance=settings.tolerance, progress=progress,
+                             sparse=True)
+        pool.shutdown(wait=False)
+        return _FieldJob(sils, cameras, grid, int(settings.tolerance), future, stop)
 
     def _run_coloring(self, settings, clock, out, notify):
         if settings.method == "hull":
@@ -1420,6 +1463,27 @@ class LiveHull:
 
         return cls(VoxelGrid.from_session(s, voxel_size), tolerance=tolerance, silhouette=find,
                    camera0=cal.turntable.camera)
+
+
+#: Start the hull field beside the poses check (:meth:`Engine._start_field`).
+SPECULATIVE_FIELD = True
+
+
+class _FieldJob(NamedTuple):
+    """A hull field started beside the poses check: its inputs and its future."""
+
+    silhouettes: list
+    cameras: list
+    grid: VoxelGrid
+    tolerance: int
+    future: Any
+    stop: Any  # threading.Event: set, the job stops after its next view
+
+    def fits(self, sils, cameras, grid, tolerance):
+        """Whether the carving's inputs are this job's (the same objects; the grid and tolerance equal)."""
+        return (sils is self.silhouettes and len(cameras) == len(self.cameras)
+                and all(a is b for a, b in zip(cameras, self.cameras)) and grid == self.grid
+                and int(tolerance) == self.tolerance)
 
 
 def _measure_beside(volume, grid):

@@ -27,6 +27,7 @@ from numba import njit
 
 from ..nbcam import undistort_points
 from ..raster import iso_contours
+from ._tangents import _profile_points
 
 #: Pixels wholly inside within this many px (Chebyshev) of an edge pixel are its candidate colours.
 RADIUS = 2
@@ -72,6 +73,17 @@ def edge_coverage(image, background, mask, *, radius: int | None = None, tau: fl
     tau = TAU if tau is None else float(tau)
     if radius < 1 or not tau > 0:
         raise ValueError(f"need radius >= 1 px and tau > 0 grey levels, got {radius} and {tau}")
+    img, bg, m8 = _checked(image, background, mask)
+    out = np.zeros(m8.shape, np.float32)
+    box = _edge_box(img, bg, m8, radius, tau)
+    if box is not None:
+        cov, r0, c0 = box
+        out[r0 : r0 + cov.shape[0], c0 : c0 + cov.shape[1]] = cov
+    return out
+
+
+def _checked(image, background, mask):
+    """``(image, background, mask)`` of :func:`edge_coverage` as ``(H, W, C)``, ``(H, W, C)`` and ``(H, W)`` uint8."""
     img = np.asarray(image)
     bg = np.asarray(background)
     if img.ndim == 2:
@@ -83,16 +95,21 @@ def edge_coverage(image, background, mask, *, radius: int | None = None, tau: fl
     m8 = np.asarray(mask, np.uint8)
     if m8.shape != img.shape[:2]:
         raise ValueError(f"mask {m8.shape} and image {img.shape[:2]} differ in size")
-    out = np.zeros(m8.shape, np.float32)
+    return img, bg, m8
+
+
+def _edge_box(img, bg, m8, radius=RADIUS, tau=TAU):
+    """:func:`edge_coverage` on the box about the silhouette only (checked inputs: ``(H, W, C)`` image and background,
+    ``(H, W)`` uint8 mask): ``(coverage of the box, r0, c0)``, the frame outside it 0; None for an empty mask.
+    The poses check reads the box (:func:`organlab.poses._refine._outline_rays`) without the whole frame's 1.2 MB."""
     rows, cols = np.flatnonzero(m8.any(axis=1)), np.flatnonzero(m8.any(axis=0))  # the box (np.nonzero: 5 ms a frame)
     if rows.size == 0:
-        return out
+        return None
     pad = int(radius) + 2
     h, w = m8.shape
     r0, r1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, h)
     c0, c1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, w)
-    out[r0:r1, c0:c1] = _edge_coverage(img[r0:r1, c0:c1], bg[r0:r1, c0:c1], m8[r0:r1, c0:c1], int(radius), float(tau))
-    return out
+    return _edge_coverage(img[r0:r1, c0:c1], bg[r0:r1, c0:c1], m8[r0:r1, c0:c1], int(radius), float(tau)), int(r0), int(c0)
 
 
 def _edge_coverage(img, bg, m8, radius, tau):
@@ -123,7 +140,8 @@ def warm_kernels() -> None:
     img = np.zeros((6, 6, 3), np.uint8)
     img[2:4, 2:4] = 200
     edge_coverage(img, np.zeros((6, 6, 3), np.float32), img[..., 0] > 0)
-    iso_contours(np.zeros((2, 2)), 0.5)  # organlab.poses._tangents.outline_rays': the contours, the undistortion
+    iso_contours(np.zeros((2, 2)), 0.5)  # organlab.poses._tangents.outline_rays': the contours, the points, the undistortion
+    _profile_points(np.zeros((8, 8)), np.full((1, 2), 3.5), 3)
     dist = np.ones(5)
     dist.flags.writeable = False  # the stage passes the camera's read-only ``dist``: that specialisation
     undistort_points(np.zeros((1, 2)), dist)
