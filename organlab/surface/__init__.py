@@ -6,7 +6,8 @@ Public names are re-exported from private modules by topic:
   marching cubes, or the teaching classic one of :mod:`._classic_mc`);
 - :mod:`._io`: PLY, STL, OBJ, VTK/VTU files;
 - :mod:`._quality`, :mod:`._repair`: triangle quality, pymeshlab repair,
-  smoothing, isotropic remeshing, :func:`finish_surface` (a :class:`FinishedSurface`);
+  smoothing, isotropic remeshing, :func:`finish_surface` (a :class:`FinishedSurface`),
+  :func:`warm_kernels` (its kernels loaded ahead of its first call);
 - :mod:`._deviation`: closest points on a mesh, a finished surface's deviation from the raw one;
 - :mod:`._voronoi`: crust reconstruction from points, screened Poisson;
 - :mod:`._aaa`: centreline and aneurysm measurements;
@@ -21,7 +22,7 @@ from ._io import read_obj, read_ply, write_obj, write_ply, write_stl, write_vtk
 from ._mesh import MC_METHODS, Mesh, MeshMeasures, color_vertices, measure, mesh_from_field, mesh_from_volume
 from ._picture import aaa_picture, mesh_snapshot
 from ._quality import boundary_loops, mesh_quality
-from ._repair import FinishedSurface, finish_surface, release_heap, remesh_mesh, repair_mesh, smooth_mesh
+from ._repair import FinishedSurface, finish_surface, release_heap, remesh_mesh, repair_mesh, smooth_mesh, warm_kernels
 from ._result import is_aaa_session, load_voxels, mesh_result
 from ._tetra import TETRA_FORMATS, TetMesh, read_tetra, tet_quality, tetrahedralize, write_tetra
 from ._voronoi import crust, labelled_balls, poisson_surface, poles, vertex_normals
@@ -43,6 +44,7 @@ __all__ = [
     "mesh_quality",
     "boundary_loops",
     "finish_surface",
+    "warm_kernels",
     "release_heap",
     "FinishedSurface",
     "surface_deviation",
