@@ -27,10 +27,11 @@ import numpy as np
 from numba import njit
 
 from ..errors import OrganlabError
+from ..grid import VoxelGrid
 from ._deviation import _SURFACES, _deviation_figures, _distances, _Surface, _surface
 from ._folds import fold_edges
 from ._guard import keep_on_data, near_deviation
-from ._mesh import Mesh
+from ._mesh import Mesh, mesh_from_field
 from ._quality import (_face_figures, _find, _moved, boundary_loops, has_duplicate_vertices, has_null_faces,
                        mesh_quality, triangle_angles)
 from ._remesh import adaptive_remesh, fit_faces, fix_slivers, sizing_field
@@ -854,9 +855,6 @@ def warm_kernels() -> None:
     >>> from organlab.surface import warm_kernels
     >>> warm_kernels()
     """
-    from ..grid import VoxelGrid
-    from ._mesh import mesh_from_field
-
     grid = VoxelGrid((-6.0, -6.0, -6.0), 1.0, (13, 13, 13))
     x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
     ball = (4.5 - np.sqrt(x**2 + y**2 + z**2)).astype(np.float32)
