@@ -58,7 +58,12 @@ def pytest_configure(config):
     import tempfile
 
     from organlab.calibration._board import DETECTION_CACHE_ENV
+    from organlab.synthetic._simrig import SPEEDUP_ENV
 
+    # the simulated table's moves 10x faster again (organlab/synthetic/_simrig.py): they are real-time waits that
+    # no test measures (every capture test, its notebook and its command-line subprocesses wait for them); a value
+    # already in the environment is kept (ORGANLAB_SIM_SPEEDUP=1: the moves' own time_scale alone)
+    os.environ.setdefault(SPEEDUP_ENV, "10")
     if not os.environ.get(DETECTION_CACHE_ENV):
         folder = tempfile.mkdtemp(prefix="organlab-detections-")
         os.environ[DETECTION_CACHE_ENV] = folder

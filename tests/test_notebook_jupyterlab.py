@@ -89,7 +89,7 @@ def lab(tmp_path_factory):
                 if proc.poll() is not None or time.monotonic() - t0 > 120:
                     log.flush()
                     pytest.fail(f"jupyter lab did not start: {(top / 'jupyterlab.log').read_text()[-2000:]}")
-                time.sleep(0.5)
+                time.sleep(0.1)  # polls (was 0.5 s: up to 0.4 s waited past the server's start)
         yield {"url": url, "token": token, "root": top / "notebooks", "log": top / "jupyterlab.log"}
     finally:
         proc.terminate()
@@ -112,7 +112,7 @@ def _wait_for_kernel(lab, notebook, timeout=240):
         if any(s.get("path") == notebook and (s.get("kernel") or {}).get("execution_state") == "idle" for s in sessions):
             return
         assert time.monotonic() - t0 < timeout, f"no idle kernel for {notebook} after {timeout} s: {sessions}"
-        time.sleep(0.5)
+        time.sleep(0.1)
 
 
 def _png(locator):
@@ -154,7 +154,7 @@ def test_threshold_picker_in_jupyterlab(lab):
             t0 = time.monotonic()
             while "Exercise 2: not done yet" not in last.inner_text():
                 assert time.monotonic() - t0 < 400, "Run All did not reach the last cell"
-                page.wait_for_timeout(1000)
+                page.wait_for_timeout(250)  # polls (was 1 s)
             page.wait_for_timeout(1000)
             summary = page.locator(".widget-label").filter(has_text="px")
             picture = page.locator(".jp-OutputArea-output .widget-output img")
@@ -168,7 +168,7 @@ def test_threshold_picker_in_jupyterlab(lab):
             t0 = time.monotonic()
             while summary.first.inner_text() == before_text or picture.first.get_attribute("src") == before_src:
                 assert time.monotonic() - t0 < 60, f"the picker did not redraw: {summary.first.inner_text()}"
-                page.wait_for_timeout(500)
+                page.wait_for_timeout(250)
             page.wait_for_timeout(1000)
             after = _png(picture.first)
             assert "threshold 80" in summary.first.inner_text(), summary.first.inner_text()

@@ -56,6 +56,18 @@ def _settle(page, seconds=2.5):
     page.wait_for_timeout(int(seconds * 1000))
 
 
+def _drawn(page, until, timeout=60.0):
+    """The canvas once ``until(picture)`` holds (a model hidden, shown again or replaced: each is drawn in one
+    frame), polled every 0.25 s; on timeout the last picture, for the caller's assertion to judge.  Replaces
+    fixed waits of 2.5-4 s before one screenshot (11.5 s in all): the picture, not a clock, says it was drawn."""
+    t0 = time.monotonic()
+    while True:
+        now = _canvas(page)
+        if until(now) or time.monotonic() - t0 > timeout:
+            return now
+        page.wait_for_timeout(250)
+
+
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
     from organlab.synthetic import with_true_cameras
@@ -103,10 +115,8 @@ def test_page_shows_controls_and_model(app, page, tmp_path):
         shutil.copy(tmp_path / "viewer.png", Path(__file__).parents[1] / "docs" / "img" / "viewer.png")
     # hide the model: the pixels that change are the model's
     app.live.set_visible("mesh", False)
-    _settle(page)
-    hidden = _canvas(page)
+    hidden = _drawn(page, lambda now: _changed(shown, now).sum() > 3000)
     app.live.set_visible("mesh", True)
-    _settle(page)
     model = _changed(shown, hidden)
     h, w = model.shape
     # the specimen covers ~3 % of the canvas region at the initial framing
@@ -115,7 +125,8 @@ def test_page_shows_controls_and_model(app, page, tmp_path):
     rows, cols = np.nonzero(model)
     assert 0.2 * w < cols.mean() < 0.8 * w and rows.mean() < 0.8 * h  # roughly centred
     # and it is back
-    assert _changed(_canvas(page), hidden).sum() > 0.9 * model.sum()
+    back = _drawn(page, lambda now: _changed(now, hidden).sum() > 0.9 * model.sum())
+    assert _changed(back, hidden).sum() > 0.9 * model.sum()
 
 
 def test_threshold_slider_recarves(app, page):
@@ -140,11 +151,11 @@ def test_threshold_slider_recarves(app, page):
     assert app.result.generation > before.generation and app.result.settings.threshold == value
     assert app.result.mesh.volume < 0.9 * before.mesh.volume  # measured 62 % at 45
     assert "auto" not in str(app.controls.auto.value) and app.controls.auto.value is False
-    _settle(page, 4)
-    after = _canvas(page)
+    shown = f"{app.result.mesh.volume / 1000:.2f}"
+    after = _drawn(page, lambda now: _changed(picture, now).sum() > 1500 and shown in page.locator("body").inner_text())
     # the smaller hull changes the picture (measured 6.2 k px changed)
     assert _changed(picture, after).sum() > 1500
-    assert f"{app.result.mesh.volume / 1000:.2f}" in page.locator("body").inner_text()
+    assert shown in page.locator("body").inner_text()
 
 
 def test_automatic_threshold_checkbox(app, page):
@@ -171,8 +182,7 @@ def test_look_through_camera(app, page):
     assert looking.std() > 10  # the (undistorted) photo fills the view behind the model
     # the model is drawn in front of the photo, from the camera's pose
     app.live.set_visible("mesh", False)
-    _settle(page)
-    assert _changed(looking, _canvas(page)).sum() > 3000
+    assert _changed(looking, _drawn(page, lambda now: _changed(looking, now).sum() > 3000)).sum() > 3000
     app.live.set_visible("mesh", True)
     page.get_by_text("Leave camera view", exact=True).click()
     assert _until(lambda: "/look" not in app.live.server.scene._handle_from_node_name, 20)

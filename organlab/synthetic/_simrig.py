@@ -29,6 +29,22 @@ from ._specimens import make_specimen
 __all__ = ["MDriveSimulator", "SimRig", "SimCamera"]
 
 _FAULTS = ("drop", "garble", "stall", "lost_steps", "unplug")
+#: Environment variable: every simulated move runs this many times faster again than its ``time_scale`` says
+#: (default 1).  For test runs (tests/conftest.py sets it for the run and its subprocesses): a simulated
+#: table's move is a real-time wait (``organlab capture --turntable sim`` at step 120: 2.1 s of its 8.7 s),
+#: and no test asserts on how long a move takes.
+SPEEDUP_ENV = "ORGANLAB_SIM_SPEEDUP"
+
+
+def _speedup():
+    text = os.environ.get(SPEEDUP_ENV, "").strip()
+    try:
+        value = float(text) if text else 1.0
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise ValueError(f"{SPEEDUP_ENV} must be a positive number, got {text!r}; unset it for real-time moves")
+    return value
 
 
 class MDriveSimulator:
@@ -44,7 +60,8 @@ class MDriveSimulator:
     start_steps : int
         Physical motor position at power-up, microsteps from the home switch.
     time_scale : float
-        Simulated moves run this many times faster than the real ones.
+        Simulated moves run this many times faster than the real ones (times ``ORGANLAB_SIM_SPEEDUP``
+        when set: test runs).
     party_name : str, optional
         Start in party mode (``PY=1``) with this device name.
     """
@@ -55,7 +72,7 @@ class MDriveSimulator:
         self.vars = {"EM": 0, "MS": int(microsteps), "RC": 25, "HC": 5, "VM": 768000, "VI": 1000, "A": 1000000,
                      "D": 1000000, "ST": 0, "ER": 0, "PY": int(party_name is not None), "EE": 1}
         self.name = party_name
-        self.time_scale = float(time_scale)
+        self.time_scale = float(time_scale) * _speedup()
         self._origin = 0.0  # motor position (factory microsteps) where P = 0
         self._move = (float(start_steps), float(start_steps), 0.0, 0.0)  # m0, m1, t0, t1
         self.faults = []
