@@ -837,6 +837,10 @@ def measure_aaa(
         vol = vol[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
         sample = FieldSampler(vol, origin, vs, cval)
         inside = vol > level if f == 1 else sample.above((0, 0, 0), -(-(hi - lo) // f), f, level)
+    elif f == 1:  # the voxels themselves: their values, block by block
+        v = volume
+        inside = _voxels_above(v.states, v.index, v.values, int(v.block), np.asarray(lo, dtype=np.int64),
+                               np.asarray(hi - lo, dtype=np.int64), float(level))
     else:
         inside = sample.above(lo, -(-(hi - lo) // f), f, level)
     inside = _largest_component(inside)
@@ -854,6 +858,36 @@ def measure_aaa(
     params = {"level": level, "step_mm": step_mm, "smooth_mm": smooth_mm, "pixel_mm": px, "sac_factor": sac_factor,
               "centreline_voxel_mm": cvs}
     return _measures(c, arc, sections, inside, corigin, cvs, sac_factor, params)
+
+
+@njit(cache=True, nogil=True)
+def _voxels_above(states, index, values, B, lo, shape, level):
+    """``value > level`` at the voxels ``lo + (a, b, c)`` of a band field (states, index, values, block ``B``),
+    ``a < shape[0]``...: ``FieldSampler.above(lo, shape, 1, level)`` (its trilinear samples at voxel centres
+    are the voxels' own values, as float64), read block by block, the inside and outside blocks filled whole
+    (1 mm sample: 0.013 -> 0.002 s CPU)."""
+    out = np.zeros((shape[0], shape[1], shape[2]), dtype=np.bool_)
+    up_in = 1.5 > level
+    up_out = -0.5 > level
+    for bx in range(lo[0] // B, (lo[0] + shape[0] - 1) // B + 1):
+        i0, i1 = max(bx * B, lo[0]), min(bx * B + B, lo[0] + shape[0])
+        for by in range(lo[1] // B, (lo[1] + shape[1] - 1) // B + 1):
+            j0, j1 = max(by * B, lo[1]), min(by * B + B, lo[1] + shape[1])
+            for bz in range(lo[2] // B, (lo[2] + shape[2] - 1) // B + 1):
+                k0, k1 = max(bz * B, lo[2]), min(bz * B + B, lo[2] + shape[2])
+                st = states[bx, by, bz]
+                if st == 2:
+                    blk = values[index[bx, by, bz]]
+                    for i in range(i0, i1):
+                        for j in range(j0, j1):
+                            for k in range(k0, k1):
+                                out[i - lo[0], j - lo[1], k - lo[2]] = blk[i - bx * B, j - by * B, k - bz * B] > level
+                elif (up_in if st == 1 else up_out):
+                    for i in range(i0, i1):
+                        for j in range(j0, j1):
+                            for k in range(k0, k1):
+                                out[i - lo[0], j - lo[1], k - lo[2]] = True
+    return out
 
 
 def _band_box(field, level):
