@@ -284,10 +284,10 @@ def _iso_contours(img, level):
     for r0 in range(nr - 1):
         for c0 in range(nc - 1):
             ul, ur, ll, lr = img[r0, c0], img[r0, c0 + 1], img[r0 + 1, c0], img[r0 + 1, c0 + 1]
-            if np.isnan(ul) or np.isnan(ur) or np.isnan(ll) or np.isnan(lr):
-                continue
             case = (ul > level) * 1 + (ur > level) * 2 + (ll > level) * 4 + (lr > level) * 8
-            if case == 0 or case == 15:
+            if case == 0 or case == 15:  # skipped, NaN corners or not (a NaN is never above): most squares
+                continue
+            if np.isnan(ul) or np.isnan(ur) or np.isnan(ll) or np.isnan(lr):
                 continue
             if ns + 2 > cap:
                 cap *= 2
@@ -402,6 +402,11 @@ def _iso_contours(img, level):
             m += 1
             offs[m] = q
     return pts, offs
+
+
+#: :func:`iso_contours`'s compiled worker without its checks, for compiled callers (numba): ``(image, level)``
+#: with ``image`` (R, C) C-contiguous float64 and ``level`` a finite float; the same ``(points, offsets)``.
+iso_contours_kernel = _iso_contours
 
 
 def iso_contours(image: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:

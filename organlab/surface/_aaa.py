@@ -23,7 +23,7 @@ from numba import njit
 from ..bandfield import BandField
 from ..errors import OrganlabError
 from ..grid import VoxelGrid
-from ..raster import iso_contours
+from ..raster import iso_contours_kernel
 from ._sampling import FieldSampler
 
 
@@ -335,20 +335,64 @@ def _centreline(inside, vs, smooth_mm, step_mm):
 
 
 def _closed_around(img, level, centre):
-    """The smallest closed ``level`` contour of ``img`` around ``centre`` (1, 2) and its area (pixels); None if none."""
-    from skimage.measure import points_in_poly
+    """The smallest closed ``level`` contour of ``img`` around ``centre`` (1, 2) and its area (pixels); None if none.
 
+    The contours and which of them are closed around the centre: compiled (:func:`_around`); the areas of
+    those (most planes have one) as before.
+    """
+    pts, offs, cand = _around(np.ascontiguousarray(img, dtype=np.float64), float(level), float(centre[0, 0]),
+                              float(centre[0, 1]))
     best = None
-    pts, offs = iso_contours(img, level)
-    for k in range(len(offs) - 1):
+    for k in cand:
         ct = pts[offs[k] : offs[k + 1]]
-        if len(ct) < 4 or np.abs(ct[0] - ct[-1]).max() > 1e-9 or not points_in_poly(centre, ct)[0]:
-            continue
         x, y = ct[:, 0], ct[:, 1]  # np.roll(., 1) as a concatenation (the same array; np.roll's overhead was 5 %)
         area = 0.5 * abs(np.dot(x, np.concatenate((y[-1:], y[:-1]))) - np.dot(y, np.concatenate((x[-1:], x[:-1]))))
         if best is None or area < best[1]:
             best = (ct, area)
     return best
+
+
+@njit(cache=True, nogil=True)
+def _around(img, level, px, py):
+    """``organlab.raster.iso_contours(img, level)`` (``pts``, ``offs``) and the indices (C,) int64 of its
+    contours of 4 points or more whose ends meet (within 1e-9) and that hold the point ``(px, py)``
+    (as ``skimage.measure.points_in_poly``: on a vertex or an edge counts)."""
+    pts, offs = iso_contours_kernel(img, level)
+    cand = np.empty(len(offs), dtype=np.int64)
+    n = 0
+    for k in range(len(offs) - 1):
+        a, b = offs[k], offs[k + 1]
+        if b - a < 4 or max(abs(pts[a, 0] - pts[b - 1, 0]), abs(pts[a, 1] - pts[b - 1, 1])) > 1e-9:
+            continue
+        if _in_polygon(pts[a:b], px, py):
+            cand[n] = k
+            n += 1
+    return pts, offs, cand[:n]
+
+
+@njit(cache=True, nogil=True)
+def _in_polygon(verts, x, y):
+    """Whether ``(x, y)`` lies in the polygon ``verts`` (M, 2) or on its outline: the crossing-number test
+    with its left and right crossings (O'Rourke, Computational Geometry in C, 7.4) and a vertex tolerance
+    of 1e-12, the test ``skimage.measure.points_in_poly`` makes, in its operations."""
+    eps = 1e-12
+    n = verts.shape[0]
+    x1 = verts[n - 1, 0] - x
+    y1 = verts[n - 1, 1] - y
+    right = 0
+    left = 0
+    for i in range(n):
+        x0 = verts[i, 0] - x
+        y0 = verts[i, 1] - y
+        if -eps < x0 < eps and -eps < y0 < eps:
+            return True  # a vertex
+        if (y0 > 0) != (y1 > 0) and (x0 * y1 - x1 * y0) / (y1 - y0) > 0:
+            right += 1
+        if (y0 < 0) != (y1 < 0) and (x0 * y1 - x1 * y0) / (y1 - y0) < 0:
+            left += 1
+        x1 = x0
+        y1 = y0
+    return (right & 1) != (left & 1) or (right & 1) == 1  # on an edge, or inside
 
 
 def _cross(a, b):
