@@ -12,16 +12,17 @@ from organlab.surface._sampling import FieldSampler
 from tests.test_surface_scale import _band, _tube
 
 
-@pytest.mark.parametrize("block", [4, 3])
-def test_band_planes_trace_the_fields_contours(block):
+@pytest.mark.parametrize("block, voxel", [(4, 1.5), (3, 1.5), (4, 1.0)])
+def test_band_planes_trace_the_fields_contours(block, voxel):
     """``_sample_planes(..., level)`` on a band field (pixels whose voxels lie in one inside or outside
     block take the block's value unless a square they are in may cross the level) against the field's
     own samples everywhere: every pixel off those squares keeps its side, every other pixel the field's
     value bit for bit, and ``organlab.raster.iso_contours`` traces the same contours, point for point.  Planes at random
     centres and tilts through a tilted, swollen tube, windows of steps 1 and 3, levels on and beside the
-    block values; block 3 takes the division path (4: shifts).  Measured: equal everywhere (and the
+    block values; block 3 takes the division path (4: shifts); voxels of 1 mm the
+    multiplication by the inverse (1.5 mm: the division).  Measured: equal everywhere (and the
     sample's measures at 1 and 0.25 mm bit-identical to the plain sampling's)."""
-    f, grid, p0, a = _tube(1.5, tilt_deg=20.0, r0=7.0, bulge=10.0)
+    f, grid, p0, a = _tube(voxel, tilt_deg=20.0, r0=7.0, bulge=10.0)
     band, _ = _band(f, grid, block=block)
     assert (band.states == 2).any() and (band.states == 1).any() and (band.states == 0).any()
     sample = FieldSampler(band, grid.origin, grid.voxel_size, -0.5)

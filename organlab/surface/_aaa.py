@@ -580,13 +580,16 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, sides, index, val
     reads and the interpolation.  Tiles of :data:`_TILE` x :data:`_TILE` pixels whose corners' voxel
     box (grown by 1e-6 voxel, more than the coordinates' rounding) lies in the grid and in blocks of
     one such state are given it whole: each of their pixels would have been.  Values:
-    ``_trilinear``'s operations in its order (the same bits).
+    ``_trilinear``'s operations in its order (the same bits; the coordinates' division by a voxel size that
+    is a power of two made a multiplication by its inverse, exact).
     """
     above_in = 1.5 > level + _SIDE_MARGIN
     below_in = 1.5 < level - _SIDE_MARGIN
     above_out = -0.5 > level + _SIDE_MARGIN
     below_out = -0.5 < level - _SIDE_MARGIN
     tiles = nx > 1 and ny > 1 and nz > 1
+    inv = 1.0 / vs
+    pow2 = math.frexp(vs)[0] == 0.5  # dividing by a power of two is multiplying by its inverse: the same bits
     k = 0
     for p in range(C.shape[0]):
         ni = len(range(I[p, 0], I[p, 1], I[p, 2]))
@@ -655,9 +658,12 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, sides, index, val
                 if done[a, b]:
                     continue
                 w = G[goff[p] + J[p, 0] + b * J[p, 2]]
-                x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
-                y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
-                z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
+                x = x * inv if pow2 else x / vs
+                y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
+                y = y * inv if pow2 else y / vs
+                z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
+                z = z * inv if pow2 else z / vs
                 q = k + a * nj + b
                 if not (0.0 <= x <= nx - 1 and 0.0 <= y <= ny - 1 and 0.0 <= z <= nz - 1):
                     out[q] = cval
@@ -696,9 +702,12 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, sides, index, val
                             side[a + da, b + db] = 0
                             u = G[goff[p] + I[p, 0] + (a + da) * I[p, 2]]
                             w = G[goff[p] + J[p, 0] + (b + db) * J[p, 2]]
-                            x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
-                            y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
-                            z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                            x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
+                            x = x * inv if pow2 else x / vs
+                            y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
+                            y = y * inv if pow2 else y / vs
+                            z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
+                            z = z * inv if pow2 else z / vs
                             i0 = min(int(x), nx - 2) if nx > 1 else 0
                             j0 = min(int(y), ny - 2) if ny > 1 else 0
                             k0 = min(int(z), nz - 2) if nz > 1 else 0
