@@ -39,16 +39,20 @@ def _fill(uv, faces, out):
             continue
         if not (math.isfinite(by) and math.isfinite(cx) and math.isfinite(cy)):
             continue
-        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-        if area == 0.0:
-            continue
-        sgn = 1.0 if area > 0 else -1.0
         c0 = max(int(math.ceil(min(ax, bx, cx))), 0)
         c1 = min(int(math.floor(max(ax, bx, cx))), w - 1)
         r0 = max(int(math.ceil(min(ay, by, cy))), 0)
         r1 = min(int(math.floor(max(ay, by, cy))), h - 1)
+        if c0 > c1 or r0 > r1:  # no pixel centre in its box (a third of the 1 mm sample's hull triangles)
+            continue
+        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+        if area == 0.0:
+            continue
+        sgn = 1.0 if area > 0 else -1.0
         for r in range(r0, r1 + 1):
             for col in range(c0, c1 + 1):
+                if out[r, col]:  # set by another triangle (a closed mesh covers most pixels twice)
+                    continue
                 e0 = sgn * ((bx - ax) * (r - ay) - (by - ay) * (col - ax))
                 e1 = sgn * ((cx - bx) * (r - by) - (cy - by) * (col - bx))
                 e2 = sgn * ((ax - cx) * (r - cy) - (ay - cy) * (col - cx))
@@ -66,15 +70,6 @@ def _project(verts, cp, uv, z):
             uv[i, 0], uv[i, 1] = to_pixel(cp, xc / zc, yc / zc)
         else:
             uv[i, 0] = uv[i, 1] = np.nan
-
-
-@njit(cache=True, nogil=True)
-def _front_faces(faces, z):
-    """The faces whose three vertices lie in front of the camera plane."""
-    keep = np.empty(faces.shape[0], dtype=np.bool_)
-    for f in range(faces.shape[0]):
-        keep[f] = z[faces[f, 0]] > 0.0 and z[faces[f, 1]] > 0.0 and z[faces[f, 2]] > 0.0
-    return keep
 
 
 class MeshRaster:
@@ -111,9 +106,8 @@ class MeshRaster:
             return out
         uv, z = np.empty((len(self.verts), 2)), np.empty(len(self.verts))
         _project(self.verts, pack_camera(camera), uv, z)
-        keep = _front_faces(self.faces, z)
-        faces = self.faces if keep.all() else np.ascontiguousarray(self.faces[keep])
-        _fill(uv, faces, out)
+        # the faces with a vertex on or behind the camera plane: that vertex's uv is NaN, which _fill skips
+        _fill(uv, self.faces, out)
         return out
 
 
@@ -290,10 +284,10 @@ def _iso_contours(img, level):
     for r0 in range(nr - 1):
         for c0 in range(nc - 1):
             ul, ur, ll, lr = img[r0, c0], img[r0, c0 + 1], img[r0 + 1, c0], img[r0 + 1, c0 + 1]
-            if np.isnan(ul) or np.isnan(ur) or np.isnan(ll) or np.isnan(lr):
-                continue
             case = (ul > level) * 1 + (ur > level) * 2 + (ll > level) * 4 + (lr > level) * 8
-            if case == 0 or case == 15:
+            if case == 0 or case == 15:  # skipped, NaN corners or not (a NaN is never above): most squares
+                continue
+            if np.isnan(ul) or np.isnan(ur) or np.isnan(ll) or np.isnan(lr):
                 continue
             if ns + 2 > cap:
                 cap *= 2
@@ -408,6 +402,11 @@ def _iso_contours(img, level):
             m += 1
             offs[m] = q
     return pts, offs
+
+
+#: :func:`iso_contours`'s compiled worker without its checks, for compiled callers (numba): ``(image, level)``
+#: with ``image`` (R, C) C-contiguous float64 and ``level`` a finite float; the same ``(points, offsets)``.
+iso_contours_kernel = _iso_contours
 
 
 def iso_contours(image: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ from numba import njit
 from ..bandfield import BandField
 from ..errors import OrganlabError
 from ..grid import VoxelGrid
-from ..raster import iso_contours
+from ..raster import iso_contours_kernel
 from ._sampling import FieldSampler
 
 
@@ -335,20 +335,64 @@ def _centreline(inside, vs, smooth_mm, step_mm):
 
 
 def _closed_around(img, level, centre):
-    """The smallest closed ``level`` contour of ``img`` around ``centre`` (1, 2) and its area (pixels); None if none."""
-    from skimage.measure import points_in_poly
+    """The smallest closed ``level`` contour of ``img`` around ``centre`` (1, 2) and its area (pixels); None if none.
 
+    The contours and which of them are closed around the centre: compiled (:func:`_around`); the areas of
+    those (most planes have one) as before.
+    """
+    pts, offs, cand = _around(np.ascontiguousarray(img, dtype=np.float64), float(level), float(centre[0, 0]),
+                              float(centre[0, 1]))
     best = None
-    pts, offs = iso_contours(img, level)
-    for k in range(len(offs) - 1):
+    for k in cand:
         ct = pts[offs[k] : offs[k + 1]]
-        if len(ct) < 4 or np.abs(ct[0] - ct[-1]).max() > 1e-9 or not points_in_poly(centre, ct)[0]:
-            continue
         x, y = ct[:, 0], ct[:, 1]  # np.roll(., 1) as a concatenation (the same array; np.roll's overhead was 5 %)
         area = 0.5 * abs(np.dot(x, np.concatenate((y[-1:], y[:-1]))) - np.dot(y, np.concatenate((x[-1:], x[:-1]))))
         if best is None or area < best[1]:
             best = (ct, area)
     return best
+
+
+@njit(cache=True, nogil=True)
+def _around(img, level, px, py):
+    """``organlab.raster.iso_contours(img, level)`` (``pts``, ``offs``) and the indices (C,) int64 of its
+    contours of 4 points or more whose ends meet (within 1e-9) and that hold the point ``(px, py)``
+    (as ``skimage.measure.points_in_poly``: on a vertex or an edge counts)."""
+    pts, offs = iso_contours_kernel(img, level)
+    cand = np.empty(len(offs), dtype=np.int64)
+    n = 0
+    for k in range(len(offs) - 1):
+        a, b = offs[k], offs[k + 1]
+        if b - a < 4 or max(abs(pts[a, 0] - pts[b - 1, 0]), abs(pts[a, 1] - pts[b - 1, 1])) > 1e-9:
+            continue
+        if _in_polygon(pts[a:b], px, py):
+            cand[n] = k
+            n += 1
+    return pts, offs, cand[:n]
+
+
+@njit(cache=True, nogil=True)
+def _in_polygon(verts, x, y):
+    """Whether ``(x, y)`` lies in the polygon ``verts`` (M, 2) or on its outline: the crossing-number test
+    with its left and right crossings (O'Rourke, Computational Geometry in C, 7.4) and a vertex tolerance
+    of 1e-12, the test ``skimage.measure.points_in_poly`` makes, in its operations."""
+    eps = 1e-12
+    n = verts.shape[0]
+    x1 = verts[n - 1, 0] - x
+    y1 = verts[n - 1, 1] - y
+    right = 0
+    left = 0
+    for i in range(n):
+        x0 = verts[i, 0] - x
+        y0 = verts[i, 1] - y
+        if -eps < x0 < eps and -eps < y0 < eps:
+            return True  # a vertex
+        if (y0 > 0) != (y1 > 0) and (x0 * y1 - x1 * y0) / (y1 - y0) > 0:
+            right += 1
+        if (y0 < 0) != (y1 < 0) and (x0 * y1 - x1 * y0) / (y1 - y0) < 0:
+            left += 1
+        x1 = x0
+        y1 = y0
+    return (right & 1) != (left & 1) or (right & 1) == 1  # on an edge, or inside
 
 
 def _cross(a, b):
@@ -463,7 +507,8 @@ def _sample_planes(sample, planes, windows, level=None):
         vals = np.empty(n)
         B = int(f.block)
         sh = B.bit_length() - 1 if B & (B - 1) == 0 else -1  # blocks of 2**sh voxels: shifts, not divisions
-        _band_planes(*args, f.states, f.index, f.values, B, sh, *f.shape, sample.cval, float(level), vals)
+        sides = _side_states(f.states, f.index, f.values, float(level))
+        _band_planes(*args, f.states, sides, f.index, f.values, B, sh, *f.shape, sample.cval, float(level), vals)
     else:
         ijk = np.empty((n, 3))
         _plane_indices(*args, ijk)
@@ -479,36 +524,146 @@ def _sample_planes(sample, planes, windows, level=None):
 _SIDE_MARGIN = 1e-6
 
 
+#: Pixels a side of the tiles :func:`_band_planes` takes whole from their blocks' states.
+_TILE = 4
+
+
 @njit(cache=True, nogil=True)
-def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, index, values, B, sh, nx, ny, nz, cval, level, out):
+def _side_states(states, index, values, level):
+    """``states`` (0 outside, 1 inside, 2 band) with each band block whose values all lie more than twice
+    :data:`_SIDE_MARGIN` above ``level`` marked 1, all below it marked 0 (when the inside's 1.5, the
+    outside's -0.5, lie on those sides): a pixel whose 8 voxels lie in such blocks is on that side (its
+    trilinear value is a weighted mean of values all on it), so :func:`_band_planes` may give it the
+    state's value as it does in inside and outside blocks.  At 1 mm on the sample half the band blocks."""
+    out = states.copy()
+    m = 2.0 * _SIDE_MARGIN
+    up_ok = 1.5 > level + _SIDE_MARGIN
+    down_ok = -0.5 < level - _SIDE_MARGIN
+    nx, ny, nz = states.shape
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if states[i, j, k] != 2:
+                    continue
+                blk = values[index[i, j, k]]
+                up = up_ok
+                down = down_ok
+                for a in range(blk.shape[0]):
+                    for b in range(blk.shape[1]):
+                        for c in range(blk.shape[2]):
+                            v = blk[a, b, c]
+                            up = up and v > level + m
+                            down = down and v < level - m
+                        if not (up or down):
+                            break
+                    if not (up or down):
+                        break
+                if up:
+                    out[i, j, k] = 1
+                elif down:
+                    out[i, j, k] = 0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, sides, index, values, B, sh, nx, ny, nz, cval, level,
+                 out):
     """:func:`_plane_indices` then ``FieldSampler.at_indices`` on a band field, for the ``level`` contours.
 
-    A pixel whose 8 voxels lie in inside (1.5) or outside (-0.5) blocks of one state is on that
-    state's side of ``level`` (its trilinear value is a weighted mean of equal values: within 1e-15 of
-    it); it gets that value (1.5 or -0.5) unless a pixel it shares a square with may lie on the other
-    side, when it gets the field's value as every other pixel does.  Marching squares reads the values
-    of the squares with corners on both sides only (each corner then shares the square with one of
-    the other side), so its contours are those of the field's values, point for point; the pixels
-    off the surface skip the 8 reads and the interpolation.  Values: ``_trilinear``'s operations in
-    its order (the same bits).
+    A pixel whose 8 voxels lie in blocks of one state of ``sides`` (:func:`_side_states`: the inside
+    and outside blocks, and the band blocks wholly on one side of ``level``) is on that state's side of
+    ``level`` (its trilinear value is a weighted mean of values on that side); it gets that state's
+    value (1.5 or -0.5) unless a pixel it shares a square with may lie on the other side, when it gets
+    the field's value as every other pixel does.  Marching squares reads the values of the squares with
+    corners on both sides only (each corner then shares the square with one of the other side), so its
+    contours are those of the field's values, point for point; the pixels off the surface skip the 8
+    reads and the interpolation.  Tiles of :data:`_TILE` x :data:`_TILE` pixels whose corners' voxel
+    box (grown by 1e-6 voxel, more than the coordinates' rounding) lies in the grid and in blocks of
+    one such state are given it whole: each of their pixels would have been.  Values:
+    ``_trilinear``'s operations in its order (the same bits; the coordinates' division by a voxel size that
+    is a power of two made a multiplication by its inverse, exact).
     """
     above_in = 1.5 > level + _SIDE_MARGIN
     below_in = 1.5 < level - _SIDE_MARGIN
     above_out = -0.5 > level + _SIDE_MARGIN
     below_out = -0.5 < level - _SIDE_MARGIN
+    tiles = nx > 1 and ny > 1 and nz > 1
+    inv = 1.0 / vs
+    pow2 = math.frexp(vs)[0] == 0.5  # dividing by a power of two is multiplying by its inverse: the same bits
     k = 0
     for p in range(C.shape[0]):
         ni = len(range(I[p, 0], I[p, 1], I[p, 2]))
         nj = len(range(J[p, 0], J[p, 1], J[p, 2]))
         side = np.zeros((ni, nj), dtype=np.int8)  # 0: the field's value; 1 above, -1 below (a state's value)
         cls = np.zeros((ni, nj), dtype=np.int8)  # 1 above, -1 below, 0 within the margin of the level
+        done = np.zeros((ni, nj), dtype=np.bool_)  # given by its tile
+        if tiles:
+            for ta in range(0, ni, _TILE):
+                a1 = min(ta + _TILE, ni) - 1
+                for tb in range(0, nj, _TILE):
+                    b1 = min(tb + _TILE, nj) - 1
+                    lo0 = lo1 = lo2 = np.inf
+                    hi0 = hi1 = hi2 = -np.inf
+                    for a in (ta, a1):
+                        u = G[goff[p] + I[p, 0] + a * I[p, 2]]
+                        for b in (tb, b1):
+                            w = G[goff[p] + J[p, 0] + b * J[p, 2]]
+                            x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
+                            y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
+                            z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                            lo0, hi0 = min(lo0, x), max(hi0, x)
+                            lo1, hi1 = min(lo1, y), max(hi1, y)
+                            lo2, hi2 = min(lo2, z), max(hi2, z)
+                    lo0, lo1, lo2 = lo0 - 1e-6, lo1 - 1e-6, lo2 - 1e-6
+                    hi0, hi1, hi2 = hi0 + 1e-6, hi1 + 1e-6, hi2 + 1e-6
+                    if not (lo0 >= 0.0 and lo1 >= 0.0 and lo2 >= 0.0 and hi0 <= nx - 1 and hi1 <= ny - 1
+                            and hi2 <= nz - 1):
+                        continue
+                    s = sides[_blk(min(int(lo0), nx - 2), B, sh), _blk(min(int(lo1), ny - 2), B, sh),
+                              _blk(min(int(lo2), nz - 2), B, sh)]
+                    if s == 1:
+                        if not (above_in or below_in):
+                            continue
+                        val = 1 if above_in else -1
+                    elif s == 0:
+                        if not (above_out or below_out):
+                            continue
+                        val = 1 if above_out else -1
+                    else:
+                        continue
+                    same = True
+                    for bx in range(_blk(min(int(lo0), nx - 2), B, sh), _blk(min(int(hi0), nx - 2) + 1, B, sh) + 1):
+                        for by in range(_blk(min(int(lo1), ny - 2), B, sh),
+                                        _blk(min(int(hi1), ny - 2) + 1, B, sh) + 1):
+                            for bz in range(_blk(min(int(lo2), nz - 2), B, sh),
+                                            _blk(min(int(hi2), nz - 2) + 1, B, sh) + 1):
+                                if sides[bx, by, bz] != s:
+                                    same = False
+                                    break
+                            if not same:
+                                break
+                        if not same:
+                            break
+                    if not same:
+                        continue
+                    v = 1.5 if s == 1 else -0.5
+                    for a in range(ta, a1 + 1):
+                        for b in range(tb, b1 + 1):
+                            side[a, b] = cls[a, b] = val
+                            done[a, b] = True
+                            out[k + a * nj + b] = v
         for a in range(ni):
             u = G[goff[p] + I[p, 0] + a * I[p, 2]]
             for b in range(nj):
+                if done[a, b]:
+                    continue
                 w = G[goff[p] + J[p, 0] + b * J[p, 2]]
-                x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
-                y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
-                z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
+                x = x * inv if pow2 else x / vs
+                y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
+                y = y * inv if pow2 else y / vs
+                z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
+                z = z * inv if pow2 else z / vs
                 q = k + a * nj + b
                 if not (0.0 <= x <= nx - 1 and 0.0 <= y <= ny - 1 and 0.0 <= z <= nz - 1):
                     out[q] = cval
@@ -521,10 +676,10 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, index, values, B,
                 bx1 = _blk(i0 + 1, B, sh) if nx > 1 else bx0
                 by1 = _blk(j0 + 1, B, sh) if ny > 1 else by0
                 bz1 = _blk(k0 + 1, B, sh) if nz > 1 else bz0
-                s = states[bx0, by0, bz0]
-                if s != 2 and (states[bx1, by0, bz0] == s and states[bx0, by1, bz0] == s and states[bx1, by1, bz0] == s
-                               and states[bx0, by0, bz1] == s and states[bx1, by0, bz1] == s
-                               and states[bx0, by1, bz1] == s and states[bx1, by1, bz1] == s):
+                s = sides[bx0, by0, bz0]
+                if s != 2 and (sides[bx1, by0, bz0] == s and sides[bx0, by1, bz0] == s and sides[bx1, by1, bz0] == s
+                               and sides[bx0, by0, bz1] == s and sides[bx1, by0, bz1] == s
+                               and sides[bx0, by1, bz1] == s and sides[bx1, by1, bz1] == s):
                     if s == 1 and (above_in or below_in):
                         side[a, b] = cls[a, b] = 1 if above_in else -1
                         out[q] = 1.5
@@ -547,9 +702,12 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, index, values, B,
                             side[a + da, b + db] = 0
                             u = G[goff[p] + I[p, 0] + (a + da) * I[p, 2]]
                             w = G[goff[p] + J[p, 0] + (b + db) * J[p, 2]]
-                            x = (C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]) / vs
-                            y = (C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]) / vs
-                            z = (C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]) / vs
+                            x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
+                            x = x * inv if pow2 else x / vs
+                            y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
+                            y = y * inv if pow2 else y / vs
+                            z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
+                            z = z * inv if pow2 else z / vs
                             i0 = min(int(x), nx - 2) if nx > 1 else 0
                             j0 = min(int(y), ny - 2) if ny > 1 else 0
                             k0 = min(int(z), nz - 2) if nz > 1 else 0
@@ -732,6 +890,10 @@ def measure_aaa(
         vol = vol[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
         sample = FieldSampler(vol, origin, vs, cval)
         inside = vol > level if f == 1 else sample.above((0, 0, 0), -(-(hi - lo) // f), f, level)
+    elif f == 1:  # the voxels themselves: their values, block by block
+        v = volume
+        inside = _voxels_above(v.states, v.index, v.values, int(v.block), np.asarray(lo, dtype=np.int64),
+                               np.asarray(hi - lo, dtype=np.int64), float(level))
     else:
         inside = sample.above(lo, -(-(hi - lo) // f), f, level)
     inside = _largest_component(inside)
@@ -749,6 +911,36 @@ def measure_aaa(
     params = {"level": level, "step_mm": step_mm, "smooth_mm": smooth_mm, "pixel_mm": px, "sac_factor": sac_factor,
               "centreline_voxel_mm": cvs}
     return _measures(c, arc, sections, inside, corigin, cvs, sac_factor, params)
+
+
+@njit(cache=True, nogil=True)
+def _voxels_above(states, index, values, B, lo, shape, level):
+    """``value > level`` at the voxels ``lo + (a, b, c)`` of a band field (states, index, values, block ``B``),
+    ``a < shape[0]``...: ``FieldSampler.above(lo, shape, 1, level)`` (its trilinear samples at voxel centres
+    are the voxels' own values, as float64), read block by block, the inside and outside blocks filled whole
+    (1 mm sample: 0.013 -> 0.002 s CPU)."""
+    out = np.zeros((shape[0], shape[1], shape[2]), dtype=np.bool_)
+    up_in = 1.5 > level
+    up_out = -0.5 > level
+    for bx in range(lo[0] // B, (lo[0] + shape[0] - 1) // B + 1):
+        i0, i1 = max(bx * B, lo[0]), min(bx * B + B, lo[0] + shape[0])
+        for by in range(lo[1] // B, (lo[1] + shape[1] - 1) // B + 1):
+            j0, j1 = max(by * B, lo[1]), min(by * B + B, lo[1] + shape[1])
+            for bz in range(lo[2] // B, (lo[2] + shape[2] - 1) // B + 1):
+                k0, k1 = max(bz * B, lo[2]), min(bz * B + B, lo[2] + shape[2])
+                st = states[bx, by, bz]
+                if st == 2:
+                    blk = values[index[bx, by, bz]]
+                    for i in range(i0, i1):
+                        for j in range(j0, j1):
+                            for k in range(k0, k1):
+                                out[i - lo[0], j - lo[1], k - lo[2]] = blk[i - bx * B, j - by * B, k - bz * B] > level
+                elif (up_in if st == 1 else up_out):
+                    for i in range(i0, i1):
+                        for j in range(j0, j1):
+                            for k in range(k0, k1):
+                                out[i - lo[0], j - lo[1], k - lo[2]] = True
+    return out
 
 
 def _band_box(field, level):
