@@ -658,12 +658,7 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, sides, index, val
                 if done[a, b]:
                     continue
                 w = G[goff[p] + J[p, 0] + b * J[p, 2]]
-                x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
-                x = x * inv if pow2 else x / vs
-                y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
-                y = y * inv if pow2 else y / vs
-                z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
-                z = z * inv if pow2 else z / vs
+                x, y, z = _in_voxels(C, E1, E2, p, u, w, origin, inv, vs, pow2)
                 q = k + a * nj + b
                 if not (0.0 <= x <= nx - 1 and 0.0 <= y <= ny - 1 and 0.0 <= z <= nz - 1):
                     out[q] = cval
@@ -702,18 +697,24 @@ def _band_planes(C, E1, E2, G, goff, I, J, origin, vs, states, sides, index, val
                             side[a + da, b + db] = 0
                             u = G[goff[p] + I[p, 0] + (a + da) * I[p, 2]]
                             w = G[goff[p] + J[p, 0] + (b + db) * J[p, 2]]
-                            x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
-                            x = x * inv if pow2 else x / vs
-                            y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
-                            y = y * inv if pow2 else y / vs
-                            z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
-                            z = z * inv if pow2 else z / vs
+                            x, y, z = _in_voxels(C, E1, E2, p, u, w, origin, inv, vs, pow2)
                             i0 = min(int(x), nx - 2) if nx > 1 else 0
                             j0 = min(int(y), ny - 2) if ny > 1 else 0
                             k0 = min(int(z), nz - 2) if nz > 1 else 0
                             out[k + (a + da) * nj + b + db] = _trilinear_at(states, index, values, B, sh, x, y, z,
                                                                             i0, j0, k0)
         k += ni * nj
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _in_voxels(C, E1, E2, p, u, w, origin, inv, vs, pow2):
+    """Plane ``p``'s point at (u, w) mm in voxel units of the grid (times 1/vs when that is exact)."""
+    x = C[p, 0] + u * E1[p, 0] + w * E2[p, 0] - origin[0]
+    y = C[p, 1] + u * E1[p, 1] + w * E2[p, 1] - origin[1]
+    z = C[p, 2] + u * E1[p, 2] + w * E2[p, 2] - origin[2]
+    if pow2:
+        return x * inv, y * inv, z * inv
+    return x / vs, y / vs, z / vs
 
 
 @njit(cache=True, nogil=True, inline="always")
