@@ -19,7 +19,8 @@ STAMP := $(VENV)/.installed
 # Then the kernels only finer grids or the command reach, by their smallest calls (the same signatures, checked
 # with numba's `.signatures`): the command's start-up loads (organlab.silhouette / organlab.poses warm_kernels:
 # the median of more than 32 frames, the undistortion with the camera's read-only dist), the AAA route's 2 x 2 x 2 minima
-# (_block_min, boxes over 50 000 voxels: 1 mm and finer), and finishing's at 0.25 mm (near_deviation's
+# (_block_min, boxes over 50 000 voxels: 1 mm and finer), the AAA's coarse centreline voxels (sampler's _above_band:
+# below 0.5 mm, where the centreline's voxel is 2 or more of the grid's; 1 mm and coarser read the voxels), and finishing's at 0.25 mm (near_deviation's
 # _within, the sliver cut's check; _neighbour_mean's _star_sums; the fan count of an open surface, _fans_by_union,
 # which the calibrating sample's 0.25 mm run reached).  Without them the old WARM left five kernels
 # for a fresh clone's first 0.25 mm command to compile (the 1 mm `make demo` three of them, by numba's
@@ -35,6 +36,7 @@ WARM = $(BIN)/python -c "import shutil, tempfile; from organlab.pipeline import 
 	from organlab.surface._guard import near_deviation; from organlab.surface._aaa import _block_min; \
 	from organlab.surface._remesh import _neighbour_mean; V, F = np.array(r.mesh.vertices), np.array(r.mesh.faces); \
 	near_deviation(r.mesh, r.mesh, V[[0]], 4.0, voxel_size=4.0); _block_min(np.zeros((1, 1, 1))); _neighbour_mean(V, F); \
+	from organlab.surface import measure_aaa; measure_aaa(r.field, r.grid, centreline_voxel_mm=8.0); \
 	from organlab.surface._quality import nonmanifold_vertices; nonmanifold_vertices(type(r.mesh)(V, F[1:])); \
 	e = Engine(s); st = Settings(voxel_size=4.0); e.stream_hull(st.replace(voxel_size=1.0), lambda *a: None); \
 	e.carving_views(e.run(st.replace(threshold=20.0))); e.run(st.replace(hull='thesis')); \
