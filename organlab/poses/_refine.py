@@ -17,7 +17,7 @@ from ..masks import Silhouette, as_arrays
 from ..session import Session
 from . import _model
 from ._model import Model, Problem
-from ._outline import _checked, _edge_box
+from ._outline import _Box, _checked, _edge_box
 from ._plate import fit_with_rim
 from ._tangents import outline_rays, pad_rays
 
@@ -249,15 +249,13 @@ def refine_poses(session: Session | None, calibration: Calibration | None, silho
 
 def _outlines(silhouettes, covs, images, background):
     """The coverage the tangents read, re-estimated on the edges of subtracted views (:mod:`._outline`; each a
-    :class:`_Box`), and whether every view's was."""
+    :class:`._outline._Box`), and whether every view's was."""
     def one(sil, cov, img):
         subtracted = sil.source == "subtraction" if isinstance(sil, Silhouette) else True
         if img is None or not subtracted or np.shape(img) != np.shape(background):
             return cov, False
         mask = sil.mask if isinstance(sil, Silhouette) else np.asarray(cov) >= 0.5
-        img3, bg3, m8 = _checked(img, background, mask)
-        box = _edge_box(img3, bg3, m8)
-        return (_Box(np.zeros((0, 0), np.float32), 0, 0, m8.shape) if box is None else _Box(*box, m8.shape)), True
+        return _edge_box(*_checked(img, background, mask)), True
 
     done = _per_view(one, silhouettes, covs, images)
     return [c for c, _ in done], all(e for _, e in done)
@@ -279,29 +277,12 @@ def _per_view(f, *seqs):
         return list(pool.map(f, *seqs))
 
 
-class _Box(NamedTuple):
-    """A view's coverage on a box of its frame, 0 outside (:func:`._outline._edge_box`): what
-    :func:`._outline.edge_coverage` returns, without the whole frame (1.2 MB at 640 x 480, 2 ms a view to make
-    and scan again)."""
-
-    cov: np.ndarray  # (h, w)
-    r0: int
-    c0: int
-    shape: tuple  # the frame's (H, W)
-
-    def frame(self):
-        """The whole frame's coverage (:func:`._outline.edge_coverage`)."""
-        out = np.zeros(self.shape, self.cov.dtype)
-        out[self.r0 : self.r0 + self.cov.shape[0], self.c0 : self.c0 + self.cov.shape[1]] = self.cov
-        return out
-
-
 def _outline_rays(cov, cam):
     """:func:`._tangents.outline_rays` of the box about the silhouette (its coverage above 0, 2 px more on each
     side, within the frame), the camera's principal point moved with the box: the same contours (the frame
     outside the box is 0 and its border is kept where the box reaches it), found on some 20 000 px of the
     sample's 307 200 (their coordinates differ from the whole frame's by rounding, 1e-13 px).  ``cov``: the frame
-    ``(H, W)``, or a :class:`_Box` of it (the same box cut from it: the same rays, bit for bit)."""
+    ``(H, W)``, or a :class:`._outline._Box` of it (the same box cut from it: the same rays, bit for bit)."""
     if isinstance(cov, _Box):
         box, br, bc, (h, w) = cov.cov, cov.r0, cov.c0, cov.shape
     else:
