@@ -499,26 +499,27 @@ def _load_stages(ready):
         pass
     finally:
         ready.set()
-    try:
-        import numba
+    for step, parallel in ((warm_hull_kernels, True), (_import_ndimage, False), (warm_surface_kernels, True)):
+        try:
+            if not parallel or _parallel_beside():
+                step()
+        except Exception:  # noqa: BLE001 (the run reports it)
+            pass
 
-        # the hull's parallel kernels run here beside the silhouettes: only with a threading layer that takes
-        # parallel kernels from two threads at once (workqueue aborts the process)
-        if numba.threading_layer() in ("omp", "tbb"):
-            warm_hull_kernels()
-    except Exception:  # noqa: BLE001 (no layer chosen yet, or the run reports it)
-        pass
-    try:
-        import scipy.ndimage  # noqa: F401
-    except Exception:  # noqa: BLE001 (the run reports it)
-        pass
-    try:
-        import numba
 
-        if numba.threading_layer() in ("omp", "tbb"):  # as the hull's above: parallel kernels beside the run's
-            warm_surface_kernels()
-    except Exception:  # noqa: BLE001 (the run reports it)
-        pass
+def _import_ndimage():
+    import scipy.ndimage  # noqa: F401
+
+
+def _parallel_beside():
+    """Whether this thread may run parallel numba kernels beside the run's: numba's omp or tbb threading layer
+    (two threads in parallel kernels abort the process under workqueue); False while no layer is chosen yet."""
+    import numba
+
+    try:
+        return numba.threading_layer() in ("omp", "tbb")
+    except ValueError:  # no layer chosen yet
+        return False
 
 
 def _run_reconstruct(a, session, max_memory):
