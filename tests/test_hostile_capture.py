@@ -73,3 +73,15 @@ def test_camera_file_with_nan_is_refused(tmp_path):
     p.write_text('{"camera": {"K": [[1e400, 0, 160], [0, 400, 120], [0, 0, 1]], "dist": [0, 0, 0, 0, 0]}}')  # inf
     with pytest.raises(CaptureError, match="finite"):
         read_intrinsics(p)
+
+
+@pytest.mark.parametrize("value", ["abc", "-1", "0", "inf"])
+def test_bad_sim_speedup_is_one_line_exit_2(tmp_path, monkeypatch, capsys, value):
+    from organlab.cli import main
+
+    monkeypatch.setenv("ORGANLAB_SIM_SPEEDUP", value)
+    code = main(["capture", "--out", str(tmp_path / "s"), "--turntable", "sim", "--camera", "sim", "--step", "90"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "ORGANLAB_SIM_SPEEDUP must be a positive number" in err[0] and repr(value) in err[0]
+    assert not (tmp_path / "s").exists()  # refused before anything was written

@@ -21,6 +21,7 @@ import tty
 import numpy as np
 
 from ..capture import CaptureCamera, MDriveTurntable
+from ..errors import SettingsError
 from ..session import DEFAULT_PATTERN
 from . import _render
 from ._boards import BOARD_MARGIN, default_camera, intrinsic_board_poses, turntable_board_pose
@@ -43,7 +44,8 @@ def _speedup():
     except ValueError:
         value = float("nan")
     if not value > 0 or value == float("inf"):
-        raise ValueError(f"{SPEEDUP_ENV} must be a positive number, got {text!r}; unset it for real-time moves")
+        # a SettingsError (a ValueError too): the command line says it in one line, exit status 2
+        raise SettingsError(SPEEDUP_ENV, f"must be a positive number, got {text!r}; unset it for real-time moves")
     return value
 
 
